@@ -1,0 +1,115 @@
+"""The single adapter from a pure residual function to a ``gtsam.CustomFactor``.
+
+A residual function takes the current values of the factor's keys (``gtsam.Pose3``
+for ``"pose3"`` keys, 1-D ``numpy`` arrays for vector keys) and returns
+``(r, jacobians)``: ``r`` of shape ``(m,)`` (unwhitened) and one ``(m, d_k)`` array per
+key, where ``d_k`` is the tangent dimension of key k (6 for Pose3). The noise model
+whitens both.
+
+GTSAM pitfalls this adapter guards against (see DEVELOPERS.md): a wrong-shaped
+Jacobian block crashes or silently corrupts the solve, and an exception raised
+inside a callback during ``ISAM2.update`` corrupts the solver. So shapes are
+checked and any exception or non-finite number is contained: the factor then
+contributes a zero residual and zero Jacobians for that evaluation (it drops out
+of the linear system) and the failure is counted in ``FactorHealth``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable, Sequence, Union
+
+import gtsam
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+KeyKind = Union[str, int]
+"""``"pose3"`` for a ``gtsam.Pose3`` key, or an ``int`` n for an n-vector key."""
+
+ResidualFn = Callable[[list], tuple[np.ndarray, list[np.ndarray]]]
+
+
+@dataclass
+class FactorHealth:
+    """Counts callback evaluations that had to be neutralized."""
+
+    failures: int = 0
+    last_error: str = ""
+    by_kind: dict = field(default_factory=dict)
+
+    def record(self, kind: str, message: str) -> None:
+        if self.failures == 0 or self.by_kind.get(kind, 0) == 0:
+            log.warning("custom factor %s: %s (contained; factor zeroed for this evaluation)",
+                        kind, message)
+        self.failures += 1
+        self.by_kind[kind] = self.by_kind.get(kind, 0) + 1
+        self.last_error = message
+
+
+DEFAULT_HEALTH = FactorHealth()
+
+
+def tangent_dim(kind: KeyKind) -> int:
+    """Tangent dimension of a key kind."""
+    if kind == "pose3":
+        return 6
+    if isinstance(kind, int) and kind > 0:
+        return kind
+    raise ValueError(f"unknown key kind {kind!r}: use 'pose3' or a positive int")
+
+
+def read_value(values: gtsam.Values, key: int, kind: KeyKind):
+    """Read one key as the type a residual function expects."""
+    if kind == "pose3":
+        return values.atPose3(key)
+    return np.asarray(values.atVector(key), dtype=float)
+
+
+def custom_factor(noise: gtsam.noiseModel.Base, keys: Sequence[int], kinds: Sequence[KeyKind],
+                  fn: ResidualFn, health: FactorHealth | None = None) -> gtsam.CustomFactor:
+    """Wrap ``fn`` as a ``gtsam.CustomFactor`` over ``keys`` of the given ``kinds``.
+
+    The callback validates every Jacobian's shape ``(noise.dim(), tangent_dim)`` and
+    contains exceptions and non-finite output (see module docstring).
+    """
+    keys = [int(k) for k in keys]
+    kinds = list(kinds)
+    if len(keys) != len(kinds):
+        raise ValueError(f"{len(keys)} keys but {len(kinds)} kinds")
+    dims = [tangent_dim(k) for k in kinds]
+    m = int(noise.dim())
+    health = DEFAULT_HEALTH if health is None else health
+
+    def evaluate(values: gtsam.Values) -> tuple[np.ndarray, list[np.ndarray]]:
+        args = [read_value(values, k, kind) for k, kind in zip(keys, kinds)]
+        r, jacs = fn(args)
+        r = np.asarray(r, dtype=float).reshape(-1)
+        if r.shape != (m,):
+            raise ValueError(f"residual has shape {r.shape}, noise model expects ({m},)")
+        if len(jacs) != len(keys):
+            raise ValueError(f"{len(jacs)} Jacobians for {len(keys)} keys")
+        out = []
+        for J, d in zip(jacs, dims):
+            J = np.asarray(J, dtype=float)
+            if J.shape != (m, d):
+                raise ValueError(f"Jacobian has shape {J.shape}, expected {(m, d)}")
+            out.append(J)
+        return r, out
+
+    def error_func(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+        try:
+            r, jacs = evaluate(values)
+            if not (np.all(np.isfinite(r)) and all(np.all(np.isfinite(J)) for J in jacs)):
+                raise FloatingPointError("non-finite residual or Jacobian")
+        except Exception as exc:  # noqa: BLE001 - must never propagate into iSAM2
+            health.record(type(exc).__name__, f"{exc}")
+            r = np.zeros(m)
+            jacs = [np.zeros((m, d)) for d in dims]
+        if H is not None:
+            for i, J in enumerate(jacs):
+                H[i] = np.asfortranarray(J)
+        return r
+
+    return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error_func)

@@ -1,0 +1,180 @@
+"""EuRoC reader: all shared real datasets load; broken copies give file:line errors."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import shared
+from vio.errors import DataError
+from vio.io.euroc import LoadOptions, load_euroc, read_image
+from vio.trajectory import interpolate_pose
+
+
+def test_feature_track_dataset_loads():
+    d = load_euroc(shared("euroc_V1_01_30s_features"))
+    assert d.kind == "features" and len(d.imu) == 6001 and len(d.cam0) == 601
+    assert len(d.features) == 601 and sum(len(f.ids) for f in d.features) == 13316
+    assert len({int(i) for f in d.features for i in f.ids}) == 307
+    assert d.groundtruth is not None and d.groundtruth.bg is not None
+    assert abs(d.groundtruth.bg[0, 2] - 0.077) < 0.001       # V1_01 gyro bias z
+    assert d.imu_calib.gyro_noise_density == pytest.approx(1.6968e-4)
+    fx = d.cam0.calib.intrinsics[0]
+    assert fx == pytest.approx(458.654)
+    # velocity of a continuing track is a finite backward difference
+    moving = np.concatenate([f.velocity for f in d.features[1:50]])
+    assert np.isfinite(moving).all() and np.abs(moving).max() > 0
+    assert d.warnings == ()
+
+
+def test_static_stereo_dataset_loads_lazily():
+    d = load_euroc(shared("euroc_V1_01_static_stereo"))
+    assert d.kind == "stereo" and len(d.cam0) == len(d.cam1) == 95
+    img = read_image(d.cam0.files[0])
+    assert img.shape == (480, 752) and img.dtype == np.uint8
+    assert d.cam1.calib.T_b_c.translation()[1] == pytest.approx(0.0453689425024)
+    baseline = np.linalg.norm(d.cam0.calib.T_b_c.between(d.cam1.calib.T_b_c).translation())
+    assert baseline == pytest.approx(0.110, abs=0.002)
+
+
+@pytest.mark.parametrize("seq", ["MH_03_medium", "MH_04_difficult", "MH_05_difficult",
+                                 "V1_02_medium", "V1_03_difficult", "V2_01_easy",
+                                 "V2_02_medium", "V2_03_difficult"])
+def test_imu_gt_sequences_load(seq):
+    d = load_euroc(shared("euroc_imu_gt", seq))
+    assert d.kind == "imu" and len(d.imu) > 15000
+    gt = d.groundtruth
+    assert len(gt) > 1000 and np.allclose(np.linalg.norm(gt.q_wxyz, axis=1), 1.0)
+    mid = int(gt.t_ns[0] + (gt.t_ns[-1] - gt.t_ns[0]) // 2) + 1234
+    interpolate_pose(gt, mid)  # inside the span
+    if seq == "MH_03_medium":
+        assert gt.bg is None  # TUM ground truth has no biases
+
+
+# ---------------------------------------------------------------- broken copies
+
+def _copy(tmp_path: Path) -> Path:
+    dst = tmp_path / "ds"
+    shutil.copytree(shared("euroc_V1_01_30s_features"), dst)
+    for p in dst.rglob("*"):
+        p.chmod(0o755 if p.is_dir() else 0o644)
+    return dst
+
+
+def _edit(path: Path, line: int, new: str | None) -> None:
+    lines = path.read_text().splitlines()
+    if new is None:
+        del lines[line - 1]
+    else:
+        lines[line - 1] = new
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _expect(root: Path, file_part: str, line: int | None, words: str, **opts) -> None:
+    with pytest.raises(DataError) as exc:
+        load_euroc(root, LoadOptions(**opts))
+    msg = str(exc.value)
+    assert "\n" not in msg and file_part in msg and words in msg, msg
+    if line is not None:
+        assert f":{line}:" in msg, msg
+
+
+def test_missing_folder_and_files(tmp_path):
+    _expect(tmp_path / "nope", "nope", None, "not found")
+    root = _copy(tmp_path)
+    (root / "mav0/imu0/data.csv").unlink()
+    _expect(root, "imu0/data.csv", None, "file not found")
+
+
+@pytest.mark.parametrize("line,new,words", [
+    (5, "1403715273277143040,0.1,0.2", "expected 6 values"),
+    (6, "1403715273282143040,0.1,abc,0.3,1,2,3", "'abc' is not a number"),
+    (7, "1403715273287143040,0.1,nan,0.3,1,2,3", "non-finite"),
+    (8, "1403715273287143040,0.1,0.2,0.3,1,2,3", "duplicate timestamp"),
+    (9, "1403715273200000000,0.1,0.2,0.3,1,2,3", "decreasing timestamp"),
+    (10, "14037152.5e3,0.1,0.2,0.3,1,2,3", "not an integer"),
+])
+def test_malformed_imu_rows(tmp_path, line, new, words):
+    root = _copy(tmp_path)
+    if "duplicate" in words:  # make line 8 repeat line 7's stamp
+        prev = (root / "mav0/imu0/data.csv").read_text().splitlines()[line - 2].split(",")[0]
+        new = prev + ",0.1,0.2,0.3,1,2,3"
+    _edit(root / "mav0/imu0/data.csv", line, new)
+    _expect(root, "imu0/data.csv", line, words)
+
+
+def test_imu_gap_is_reported_not_fatal(tmp_path):
+    root = _copy(tmp_path)
+    path = root / "mav0/imu0/data.csv"
+    lines = path.read_text().splitlines()
+    del lines[100:120]  # 100 ms hole
+    path.write_text("\n".join(lines) + "\n")
+    d = load_euroc(root)
+    assert len(d.warnings) == 1 and "IMU gap of 105.0 ms" in d.warnings[0]
+
+
+def test_camera_outside_imu_span(tmp_path):
+    root = _copy(tmp_path)
+    path = root / "mav0/imu0/data.csv"
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(lines[:1] + lines[30:]) + "\n")  # IMU starts later
+    _expect(root, "cam0/data.csv", 2, "outside the IMU span")
+    d = load_euroc(root, LoadOptions(trim_to_imu=True))
+    assert len(d.cam0) < 601 and any("dropped" in w for w in d.warnings)
+    assert d.features[0].t_ns >= d.imu.t_ns[0]
+
+
+@pytest.mark.parametrize("line,new,words", [
+    (3, "1403715273262142976,0,7,0.1", "expected 5 fields"),
+    (3, "1403715273262142976,0,7,0.1,inf", "non-finite"),
+    (3, "1403715273262142976,0,1,0.1,0.2", "landmark 1 observed twice"),
+    (-1, "1403715303262142977,600,7,0.1,0.2", "not a frame of cam0/data.csv"),
+])
+def test_malformed_feature_rows(tmp_path, line, new, words):
+    root = _copy(tmp_path)
+    path = root / "mav0/cam0/features.csv"
+    if line == -1:  # append an observation at a stamp that is no frame
+        path.write_text(path.read_text() + new + "\n")
+        line = len(path.read_text().splitlines())
+    else:
+        _edit(path, line, new)
+    _expect(root, "features.csv", line, words)
+
+
+@pytest.mark.parametrize("old,new,words", [
+    ("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: [458.654, 457.296]",
+     "intrinsics must have 4 values"),
+    ("0.0148655429818, -0.999880929698", "0.5148655429818, -0.999880929698",
+     "not a rigid transform"),
+    ("distortion_model: radial-tangential", "distortion_model: fisheye62",
+     "distortion_model 'fisheye62'"),
+])
+def test_wrong_camera_calibration(tmp_path, old, new, words):
+    root = _copy(tmp_path)
+    path = root / "mav0/cam0/sensor.yaml"
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    _expect(root, "cam0/sensor.yaml", None, words)
+
+
+def test_wrong_imu_calibration(tmp_path):
+    root = _copy(tmp_path)
+    path = root / "mav0/imu0/sensor.yaml"
+    path.write_text(path.read_text().replace("gyroscope_noise_density: 1.6968e-04",
+                                             "gyroscope_noise_density: -1"))
+    _expect(root, "imu0/sensor.yaml", None, "must be a positive number")
+
+
+def test_groundtruth_bad_quaternion(tmp_path):
+    root = _copy(tmp_path)
+    path = root / "mav0/state_groundtruth_estimate0/data.csv"
+    lines = path.read_text().splitlines()
+    parts = lines[4].split(",")
+    parts[4] = "0.9"
+    lines[4] = ",".join(parts)
+    path.write_text("\n".join(lines) + "\n")
+    _expect(root, "state_groundtruth_estimate0/data.csv", 5, "quaternion norm")

@@ -1,0 +1,24 @@
+"""Errors raised for bad input: always one line that names the file and the line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DataError(ValueError):
+    """Malformed or inconsistent input data.
+
+    ``str(err)`` is ``"<path>:<line>: <message>"`` (``<path>: <message>`` when no
+    line applies), one line, so a user can jump straight to the offending row.
+    """
+
+    def __init__(self, path: str | Path, message: str, line: int | None = None) -> None:
+        self.path = str(path)
+        self.line = line
+        self.message = message
+        where = f"{self.path}:{line}" if line is not None else self.path
+        super().__init__(f"{where}: {message}")
+
+
+class ConfigError(ValueError):
+    """A configuration file or dictionary that does not match its dataclass."""

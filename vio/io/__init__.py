@@ -1,0 +1,1 @@
+"""Dataset readers and writers (EuRoC/ASL layout, TUM trajectories)."""

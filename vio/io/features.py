@@ -1,0 +1,94 @@
+"""Feature-track files: ``cam0/features.csv`` with undistorted normalized coordinates.
+
+Format (header line first)::
+
+    timestamp_ns,frame_idx,landmark_id,u_norm,v_norm
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from vio.errors import DataError
+from vio.io.csvio import read_text_lines
+from vio.io.types import FeatureFrame
+
+HEADER = "timestamp_ns,frame_idx,landmark_id,u_norm,v_norm"
+
+
+def read_features(path: Path, frame_stamps: np.ndarray | None = None) -> list[FeatureFrame]:
+    """Group observations by frame (in file order, stamps strictly increasing).
+
+    Velocities are backward differences of each landmark's normalized coordinates
+    between consecutive frames in which it is seen (1/s), zero on a track's first
+    frame, as a live KLT front end provides them. ``row`` is NaN (unknown).
+    ``frame_stamps``: if given, every stamp must be one of them.
+    """
+    lines = read_text_lines(path)
+    if not lines or lines[0].strip().replace(" ", "") != HEADER:
+        raise DataError(path, f"expected header {HEADER!r}", 1)
+    t, ids, uv, nos = [], [], [], []
+    for no, raw in enumerate(lines[1:], start=2):
+        s = raw.strip()
+        if not s:
+            continue
+        parts = s.split(",")
+        if len(parts) != 5:
+            raise DataError(path, f"expected 5 fields, found {len(parts)}", no)
+        try:
+            t.append(int(parts[0]))
+            ids.append(int(parts[2]))
+            u, v = float(parts[3]), float(parts[4])
+        except ValueError as exc:
+            raise DataError(path, f"malformed row ({exc})", no) from None
+        if not (np.isfinite(u) and np.isfinite(v)):
+            raise DataError(path, "non-finite coordinate", no)
+        uv.append((u, v))
+        nos.append(no)
+    if not t:
+        raise DataError(path, "no observations")
+    return _group(path, np.array(t, np.int64), np.array(ids, np.int64), np.array(uv),
+                  np.array(nos), frame_stamps)
+
+
+def _group(path: Path, t: np.ndarray, ids: np.ndarray, uv: np.ndarray, nos: np.ndarray,
+           frame_stamps: np.ndarray | None) -> list[FeatureFrame]:
+    d = np.diff(t)
+    if (d < 0).any():
+        i = int(np.flatnonzero(d < 0)[0]) + 1
+        raise DataError(path, f"timestamp {t[i]} goes back in time (rows must be grouped by "
+                              f"frame in time order)", int(nos[i]))
+    starts = np.concatenate([[0], np.flatnonzero(d > 0) + 1, [len(t)]])
+    known = set(int(x) for x in frame_stamps) if frame_stamps is not None else None
+    frames: list[FeatureFrame] = []
+    last_uv: dict[int, tuple[int, np.ndarray]] = {}
+    for a, b in zip(starts[:-1], starts[1:]):
+        t_ns = int(t[a])
+        if known is not None and t_ns not in known:
+            raise DataError(path, f"timestamp {t_ns} is not a frame of cam0/data.csv", int(nos[a]))
+        fid = ids[a:b]
+        uniq, counts = np.unique(fid, return_counts=True)
+        if (counts > 1).any():
+            dup = int(uniq[counts > 1][0])
+            row = a + int(np.flatnonzero(fid == dup)[1])
+            raise DataError(path, f"landmark {dup} observed twice in frame {t_ns}", int(nos[row]))
+        vel = np.zeros((b - a, 2))
+        for k, lid in enumerate(fid):
+            prev = last_uv.get(int(lid))
+            if prev is not None:
+                vel[k] = (uv[a + k] - prev[1]) / ((t_ns - prev[0]) * 1e-9)
+            last_uv[int(lid)] = (t_ns, uv[a + k])
+        frames.append(FeatureFrame(t_ns, fid.copy(), uv[a:b].copy(), vel,
+                                   np.full(b - a, np.nan)))
+    return frames
+
+
+def write_features(path: Path, frames: list[FeatureFrame]) -> None:
+    """Write frames in the ``features.csv`` format (frame_idx = position in the list)."""
+    with open(path, "w") as f:
+        f.write(HEADER + "\n")
+        for k, fr in enumerate(frames):
+            for lid, (u, v) in zip(fr.ids, fr.uv):
+                f.write(f"{fr.t_ns},{k},{int(lid)},{u:.10g},{v:.10g}\n")

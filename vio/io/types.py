@@ -1,0 +1,138 @@
+"""Frozen containers exchanged between the data layer and the pipeline stages.
+
+Arrays are numpy; timestamps are int64 nanoseconds; poses are ``gtsam.Pose3``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import gtsam
+import numpy as np
+
+DistortionModel = Literal["radial-tangential", "equidistant", "none"]
+
+
+@dataclass(frozen=True)
+class CameraCalib:
+    """A pinhole camera with lens distortion, as in EuRoC ``camN/sensor.yaml``.
+
+    ``T_b_c``: camera in the body (IMU) frame (EuRoC's ``T_BS``).
+    ``intrinsics``: (fx, fy, cx, cy) in pixels. ``distortion``: radtan
+    (k1, k2, p1, p2) or equidistant (k1, k2, k3, k4). ``resolution``: (width, height).
+    ``line_time_s``: rolling-shutter readout time per image row in seconds (0 for
+    a global shutter; EuRoC's cameras are global shutter).
+    """
+
+    T_b_c: gtsam.Pose3
+    intrinsics: tuple[float, float, float, float]
+    distortion_model: DistortionModel
+    distortion: tuple[float, ...]
+    resolution: tuple[int, int]
+    rate_hz: float = 20.0
+    line_time_s: float = 0.0
+    name: str = "cam0"
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        fx, fy, cx, cy = self.intrinsics
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def width(self) -> int:
+        return self.resolution[0]
+
+    @property
+    def height(self) -> int:
+        return self.resolution[1]
+
+
+@dataclass(frozen=True)
+class ImuCalib:
+    """Continuous-time IMU noise parameters (EuRoC ``imu0/sensor.yaml``).
+
+    Units: gyro noise rad/s/sqrt(Hz), gyro random walk rad/s^2/sqrt(Hz), accel
+    noise m/s^2/sqrt(Hz), accel random walk m/s^3/sqrt(Hz).
+    """
+
+    gyro_noise_density: float
+    gyro_random_walk: float
+    accel_noise_density: float
+    accel_random_walk: float
+    rate_hz: float = 200.0
+    T_b_s: gtsam.Pose3 = field(default_factory=gtsam.Pose3)
+
+
+@dataclass(frozen=True)
+class ImuData:
+    """IMU samples: ``t_ns`` (N,) int64, ``gyro`` (N, 3) rad/s, ``accel`` (N, 3) m/s^2,
+    both in the IMU (body) frame."""
+
+    t_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def slice(self, t0_ns: int, t1_ns: int) -> "ImuData":
+        """Samples with ``t0_ns <= t <= t1_ns``."""
+        i0 = int(np.searchsorted(self.t_ns, t0_ns, side="left"))
+        i1 = int(np.searchsorted(self.t_ns, t1_ns, side="right"))
+        return ImuData(self.t_ns[i0:i1], self.gyro[i0:i1], self.accel[i0:i1])
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Body (IMU) poses in the world. ``t_ns`` (N,), ``p_w`` (N, 3) m, ``q_wxyz`` (N, 4);
+    optional ``v_w`` (N, 3) m/s, ``bg`` and ``ba`` (N, 3) biases (NaN where absent)."""
+
+    t_ns: np.ndarray
+    p_w: np.ndarray
+    q_wxyz: np.ndarray
+    v_w: np.ndarray | None = None
+    bg: np.ndarray | None = None
+    ba: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def pose(self, i: int) -> gtsam.Pose3:
+        """``T_w_b`` of row i."""
+        q = self.q_wxyz[i]
+        return gtsam.Pose3(gtsam.Rot3.Quaternion(*q), self.p_w[i])
+
+
+@dataclass(frozen=True)
+class FeatureFrame:
+    """The feature observations of one camera frame.
+
+    ``ids`` (M,) int64 landmark ids; ``uv`` (M, 2) undistorted normalized image
+    coordinates (x/z, y/z) in this camera; ``velocity`` (M, 2) normalized-plane
+    velocity in 1/s (zeros when unknown); ``row`` (M,) image row in pixels used
+    for rolling shutter (NaN when unknown).
+    """
+
+    t_ns: int
+    ids: np.ndarray
+    uv: np.ndarray
+    velocity: np.ndarray
+    row: np.ndarray
+
+
+@dataclass(frozen=True)
+class CameraStream:
+    """Frame stamps and (lazily loaded) image files of one camera."""
+
+    calib: CameraCalib
+    t_ns: np.ndarray
+    files: tuple[Path, ...] = ()
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    def has_images(self) -> bool:
+        return len(self.files) == len(self.t_ns) and len(self.files) > 0

@@ -1,0 +1,192 @@
+"""Sensor synchronization: IMU stream + camera stream -> ordered frame packets.
+
+Each packet carries one camera frame (feature observations or image files) and
+the IMU samples between the previous frame and this one, with samples linearly
+interpolated exactly at both frame times, so consecutive packets tile the IMU
+time axis without gaps or overlaps.
+
+Time offset: a camera stamp plus ``td`` is the frame time in the IMU clock (VINS
+convention, ``t_imu = t_stamp + td``). A constant ``td`` is applied here; an
+estimated td is refined by the td projection factor on top of it.
+
+Push API (live feeds): ``add_imu`` / ``add_frame`` in any interleaving, then
+``poll()`` returns the next packet, ``WAITING`` (IMU not yet available past the
+frame) or ``DROPPED`` (the frame can never be served: it precedes the IMU stream,
+or the IMU stream was closed before reaching it). ``packets(dataset)`` iterates
+a whole dataset through the same code path.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from vio.io.types import FeatureFrame, ImuData
+
+
+class SyncStatus(enum.Enum):
+    READY = "ready"
+    WAITING = "waiting"      # data not yet available: push more IMU
+    DROPPED = "dropped"      # data never available for this frame
+    EMPTY = "empty"          # no frame queued
+
+
+@dataclass(frozen=True)
+class FramePacket:
+    """One synchronized camera frame.
+
+    ``t_ns``: frame time in the IMU clock (stamp + td). ``stamp_ns``: the camera's
+    own stamp. ``imu``: samples on ``[t_prev, t_ns]`` (first packet: the single
+    sample at ``t_ns``), endpoints interpolated. ``features``: observations
+    (feature-track datasets, or a front end's output); ``image_files`` /
+    ``images``: per-camera files or arrays (cam0 first).
+    """
+
+    index: int
+    t_ns: int
+    stamp_ns: int
+    imu: ImuData
+    features: FeatureFrame | None = None
+    image_files: tuple[Path, ...] = ()
+    images: tuple[np.ndarray, ...] = ()
+
+    @property
+    def dt_s(self) -> float:
+        """Duration covered by ``imu`` in seconds."""
+        return float(self.imu.t_ns[-1] - self.imu.t_ns[0]) * 1e-9
+
+
+@dataclass(frozen=True)
+class SyncResult:
+    status: SyncStatus
+    packet: FramePacket | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class _Frame:
+    stamp_ns: int
+    features: FeatureFrame | None
+    image_files: tuple[Path, ...]
+    images: tuple[np.ndarray, ...]
+
+
+class Synchronizer:
+    """Push-style synchronizer. ``td_s``: constant camera-to-IMU time offset (s)."""
+
+    def __init__(self, td_s: float = 0.0) -> None:
+        self.td_ns = int(round(td_s * 1e9))
+        self._t = np.zeros(0, dtype=np.int64)   # buffered IMU samples (consolidated)
+        self._w = np.zeros((0, 3))
+        self._a = np.zeros((0, 3))
+        self._pending: list[ImuData] = []        # appended since the last consolidation
+        self._t_last_imu: int | None = None
+        self._frames: deque[_Frame] = deque()
+        self._last_t: int | None = None     # time of the last emitted frame (IMU clock)
+        self._closed = False
+        self._index = 0
+
+    def add_imu(self, t_ns: int, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Append one IMU sample; stamps must strictly increase and values be finite."""
+        gyro, accel = np.asarray(gyro, float).reshape(1, 3), np.asarray(accel, float).reshape(1, 3)
+        if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
+            raise ValueError(f"non-finite IMU sample at t={t_ns}")
+        self.add_imu_block(ImuData(np.array([int(t_ns)], dtype=np.int64), gyro, accel))
+
+    def add_imu_block(self, imu: ImuData) -> None:
+        """Append samples (stamps strictly increasing, continuing the stream)."""
+        if len(imu) == 0:
+            return
+        if self._t_last_imu is not None and imu.t_ns[0] <= self._t_last_imu:
+            raise ValueError(f"IMU stamp {imu.t_ns[0]} does not increase (last {self._t_last_imu})")
+        if len(imu) > 1 and (np.diff(imu.t_ns) <= 0).any():
+            raise ValueError("IMU block stamps do not strictly increase")
+        self._pending.append(imu)
+        self._t_last_imu = int(imu.t_ns[-1])
+
+    def _consolidate(self) -> None:
+        if self._pending:
+            self._t = np.concatenate([self._t] + [p.t_ns for p in self._pending])
+            self._w = np.concatenate([self._w] + [p.gyro for p in self._pending])
+            self._a = np.concatenate([self._a] + [p.accel for p in self._pending])
+            self._pending = []
+
+    def add_frame(self, stamp_ns: int, features: FeatureFrame | None = None,
+                  image_files: tuple[Path, ...] = (), images: tuple[np.ndarray, ...] = ()) -> None:
+        """Queue a camera frame (stamps must strictly increase)."""
+        stamp_ns = int(stamp_ns)
+        if self._frames and stamp_ns <= self._frames[-1].stamp_ns:
+            raise ValueError(f"frame stamp {stamp_ns} does not increase")
+        self._frames.append(_Frame(stamp_ns, features, tuple(image_files), tuple(images)))
+
+    def close(self) -> None:
+        """No more IMU will come: frames beyond the last sample become DROPPED."""
+        self._closed = True
+
+    def poll(self) -> SyncResult:
+        """Serve the oldest queued frame if the IMU covers it (see module docstring)."""
+        if not self._frames:
+            return SyncResult(SyncStatus.EMPTY)
+        fr = self._frames[0]
+        t = fr.stamp_ns + self.td_ns
+        self._consolidate()
+        if self._t.size == 0 or t > self._t[-1]:
+            if self._closed:
+                self._frames.popleft()
+                return SyncResult(SyncStatus.DROPPED, reason=f"frame {fr.stamp_ns}: IMU ended "
+                                  f"before t={t}")
+            return SyncResult(SyncStatus.WAITING, reason=f"need IMU up to t={t}")
+        if t < self._t[0] or (self._last_t is not None and t <= self._last_t):
+            self._frames.popleft()
+            return SyncResult(SyncStatus.DROPPED, reason=f"frame {fr.stamp_ns}: t={t} precedes "
+                              f"the IMU stream or the previous frame")
+        self._frames.popleft()
+        t0 = t if self._last_t is None else self._last_t
+        seg = self._segment(t0, t)
+        self._last_t = t
+        self._trim(t0)
+        pkt = FramePacket(self._index, t, fr.stamp_ns, seg, fr.features, fr.image_files, fr.images)
+        self._index += 1
+        return SyncResult(SyncStatus.READY, pkt)
+
+    def _segment(self, t0: int, t1: int) -> ImuData:
+        ts = self._t
+        i0 = int(np.searchsorted(ts, t0, side="right")) - 1
+        i1 = int(np.searchsorted(ts, t1, side="left")) + 1
+        ts, w, a = ts[max(i0, 0):i1], self._w[max(i0, 0):i1], self._a[max(i0, 0):i1]
+        inner = ts[(ts > t0) & (ts < t1)]
+        stamps = np.concatenate([[t0], inner, [t1]]) if t1 > t0 else np.array([t1])
+        tf = (ts - ts[0]).astype(np.float64)
+        sf = (stamps - ts[0]).astype(np.float64)
+        gyro = np.stack([np.interp(sf, tf, w[:, k]) for k in range(3)], axis=1)
+        acc = np.stack([np.interp(sf, tf, a[:, k]) for k in range(3)], axis=1)
+        return ImuData(stamps.astype(np.int64), gyro, acc)
+
+    def _trim(self, t_keep: int) -> None:
+        """Forget samples no longer needed (keep the one bracketing ``t_keep``)."""
+        i = int(np.searchsorted(self._t, t_keep, side="right")) - 1
+        if i > 0:
+            self._t, self._w, self._a = self._t[i:], self._w[i:], self._a[i:]
+
+
+def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
+            features: list[FeatureFrame] | None = None,
+            image_files: list[tuple[Path, ...]] | None = None) -> Iterator[FramePacket]:
+    """Iterate a recorded dataset as packets (dropped frames are skipped).
+
+    ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``.
+    """
+    sync = Synchronizer(td_s)
+    sync.add_imu_block(imu)
+    sync.close()
+    for k, stamp in enumerate(frame_stamps):
+        sync.add_frame(int(stamp), features[k] if features is not None else None,
+                       image_files[k] if image_files is not None else ())
+        res = sync.poll()
+        if res.status is SyncStatus.READY:
+            yield res.packet
