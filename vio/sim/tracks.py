@@ -1,0 +1,439 @@
+"""Synthetic KLT-like feature tracks from a real EuRoC IMU + ground-truth sequence.
+
+The vehicle flies its real (ground-truth) trajectory inside a box-shaped room: the
+trajectory's bounding box grown by a margin, landmarks sampled on the walls, floor
+and ceiling plus a few clutter boxes standing on the floor. Frame k is stamped
+``t_k`` (camera clock, written to the files) and exposed at ``t_k + td`` (IMU clock,
+VINS convention), so observations use ``T_w_c = T_w_b(t_k + td) * T_b_c`` with the
+ground truth interpolated linearly (position) and by slerp (rotation).
+
+Output (``out/mav0``) is an EuRoC feature-track folder as in
+``shared/data/README.md``; ``out/landmarks.csv`` maps every track id to its world
+point ``p_w`` [m] and ``out/sim_truth.yaml`` records td, noise, seed and outliers.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from vio.config import to_dict
+from vio.errors import ConfigError, DataError
+from vio.io.calib import read_camera_yaml
+from vio.io.csvio import NumericTable, check_increasing, read_numeric, read_text_lines
+from vio.io.euroc import find_mav0
+from vio.io.types import CameraCalib
+
+_GT_DIR = "state_groundtruth_estimate0"
+
+
+@dataclass(frozen=True)
+class TrackGenConfig:
+    """Generator settings. Times in seconds, distances in metres, noise in pixels.
+
+    ``start_s`` is measured from the first ground-truth row; ``duration_s=None``
+    runs to the end. ``td_s``: true exposure = stamp + td (may be negative).
+    ``outlier_rate``: fraction of observations displaced by ``outlier_px`` or
+    (``swap_fraction`` of them) swapped in pairs within a frame. Image bounds use
+    the pinhole intrinsics (the undistorted image), not the wider distorted one.
+    """
+
+    start_s: float = 0.0
+    duration_s: float | None = None
+    rate_hz: float = 20.0
+    td_s: float = 0.005
+    seed: int = 0
+    noise_px: float = 0.7
+    outlier_rate: float = 0.015
+    outlier_px: tuple[float, float] = (10.0, 50.0)
+    swap_fraction: float = 0.3
+    max_features: int = 40
+    grid: tuple[int, int] = (8, 5)
+    mean_track_len: float = 15.0
+    redetect_cooldown: int = 5
+    margin_xy_m: float = 1.5
+    floor_margin_m: float = 0.3
+    ceiling_margin_m: float = 1.0
+    points_per_m2: float = 8.0
+    max_points: int = 30000
+    n_clutter_boxes: int = 4
+    clutter_points_per_m2: float = 30.0
+    min_depth_m: float = 0.2
+    max_range_m: float = 15.0
+    max_incidence_deg: float = 75.0
+    border_px: float = 1.0
+    imu_margin_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        checks = {
+            "start_s >= 0": self.start_s >= 0, "rate_hz > 0": self.rate_hz > 0,
+            "duration_s > 0": self.duration_s is None or self.duration_s > 0,
+            "noise_px >= 0": self.noise_px >= 0, "0 <= outlier_rate < 0.5": 0 <= self.outlier_rate < 0.5,
+            "0 < outlier_px[0] <= outlier_px[1]": 0 < self.outlier_px[0] <= self.outlier_px[1],
+            "0 <= swap_fraction <= 1": 0 <= self.swap_fraction <= 1,
+            "max_features >= 1": self.max_features >= 1, "grid >= 1": min(self.grid) >= 1,
+            "mean_track_len >= 1": self.mean_track_len >= 1,
+            "redetect_cooldown >= 0": self.redetect_cooldown >= 0,
+            "points_per_m2 > 0": self.points_per_m2 > 0, "max_points >= 1": self.max_points >= 1,
+            "n_clutter_boxes >= 0": self.n_clutter_boxes >= 0,
+            "0 < min_depth_m < max_range_m": 0 < self.min_depth_m < self.max_range_m,
+            "0 < max_incidence_deg <= 90": 0 < self.max_incidence_deg <= 90,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"TrackGenConfig: need {', '.join(bad)}")
+
+
+@dataclass(frozen=True)
+class TrackGenResult:
+    """What was written. ``t_ns`` (F,) camera stamps; observations (M,): ``frame_idx``,
+    ``landmark_id``, ``uv`` as written and ``uv_true`` (noise-free projection of the
+    id's own point at stamp + td), ``outlier_kind`` (0 inlier, 1 displaced, 2 swapped);
+    ``landmark_ids`` (K,) with world points ``landmark_p_w`` (K, 3) m; ``n_visible`` (F,)
+    visible candidates per frame; ``n_points`` physical points in the room."""
+
+    out: Path
+    t_ns: np.ndarray
+    td_ns: int
+    frame_idx: np.ndarray
+    landmark_id: np.ndarray
+    uv: np.ndarray
+    uv_true: np.ndarray
+    outlier_kind: np.ndarray
+    landmark_ids: np.ndarray
+    landmark_p_w: np.ndarray
+    n_visible: np.ndarray
+    n_points: int
+
+    @property
+    def features_per_frame(self) -> np.ndarray:
+        return np.bincount(self.frame_idx, minlength=len(self.t_ns))
+
+    @property
+    def track_lengths(self) -> np.ndarray:
+        """Observations per landmark id (K,)."""
+        return np.unique(self.landmark_id, return_counts=True)[1]
+
+
+@dataclass(frozen=True)
+class _Table:
+    """A parsed timestamped file plus its raw text, so excerpts copy rows verbatim."""
+
+    table: NumericTable
+    raw: list[str]
+
+    @property
+    def t_ns(self) -> np.ndarray:
+        return self.table.t_ns
+
+    def write_slice(self, dst: Path, t0_ns: int, t1_ns: int, pad: int = 0) -> None:
+        """Header lines plus the data rows with ``t0_ns <= t <= t1_ns`` (and ``pad`` more each side)."""
+        nos = self.table.lines
+        i0 = max(int(np.searchsorted(self.t_ns, t0_ns, "left")) - pad, 0)
+        i1 = min(int(np.searchsorted(self.t_ns, t1_ns, "right")) + pad, len(nos))
+        rows = self.raw[: nos[0] - 1] + [self.raw[n - 1] for n in nos[i0:i1]]
+        dst.write_text("".join(r + "\n" for r in rows))
+
+
+def _read(path: Path, n_values: int | tuple[int, ...], tum: bool = False) -> _Table:
+    table = read_numeric(path, n_values, delimiter=None if tum else ",", time_in_seconds=tum)
+    check_increasing(table)
+    if len(table.t_ns) < 2:
+        raise DataError(path, "fewer than 2 data rows")
+    return _Table(table, read_text_lines(path))
+
+
+def read_groundtruth(mav0: Path) -> tuple[_Table, np.ndarray, np.ndarray, bool]:
+    """Body poses in the world: (table, p_w (N, 3) m, q_wxyz (N, 4) unit, is_tum)."""
+    csv, tum = mav0 / _GT_DIR / "data.csv", mav0 / _GT_DIR / "groundtruth_tum.txt"
+    if csv.is_file():
+        tab = _read(csv, (7, 16))
+        p, q = tab.table.values[:, 0:3], tab.table.values[:, 3:7]
+    elif tum.is_file():
+        tab = _read(tum, 7, tum=True)
+        p, q = tab.table.values[:, 0:3], tab.table.values[:, [6, 3, 4, 5]]  # TUM xyzw -> wxyz
+    else:
+        raise DataError(mav0 / _GT_DIR, "no data.csv or groundtruth_tum.txt")
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    bad = np.flatnonzero(np.abs(norm[:, 0] - 1.0) > 1e-2)
+    if bad.size:
+        raise DataError(tab.table.path, f"quaternion norm {norm[bad[0], 0]:.4f} is not 1",
+                        int(tab.table.lines[bad[0]]))
+    return tab, p, q / norm, not csv.is_file()
+
+
+def read_camera(path: Path) -> CameraCalib:
+    """cam0 ``sensor.yaml`` (T_BS = T_b_c, intrinsics, resolution, distortion)."""
+    try:
+        return read_camera_yaml(path)
+    except ConfigError as exc:
+        raise DataError(path, str(exc).split(": ", 1)[-1]) from None
+
+
+def interpolate_gt(gt_t: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray,
+                   t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T_w_b at times ``t_ns`` (K,) inside the GT span: (p_w (K, 3), R_w_b (K, 3, 3)).
+
+    Position linear, rotation slerp between the bracketing rows."""
+    i = np.clip(np.searchsorted(gt_t, t_ns, "right") - 1, 0, len(gt_t) - 2)
+    a = ((t_ns - gt_t[i]) / (gt_t[i + 1] - gt_t[i]))[:, None]
+    pos = p[i] + a * (p[i + 1] - p[i])
+    q0, q1 = q_wxyz[i], q_wxyz[i + 1]
+    d = np.sum(q0 * q1, axis=1, keepdims=True)
+    q1 = np.where(d < 0, -q1, q1)
+    th = np.arccos(np.clip(np.abs(d), -1.0, 1.0))
+    s = np.sin(th)
+    small = s < 1e-12
+    s = np.where(small, 1.0, s)
+    w0 = np.where(small, 1 - a, np.sin((1 - a) * th) / s)
+    w1 = np.where(small, a, np.sin(a * th) / s)
+    q = w0 * q0 + w1 * q1
+    return pos, quat_to_rot(q / np.linalg.norm(q, axis=1, keepdims=True))
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (K, 4) wxyz -> rotation matrices (K, 3, 3)."""
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def _box_faces(lo: np.ndarray, hi: np.ndarray, inward: bool, bottom: bool = True):
+    """Yield (origin, e1, e2, unit normal) of an axis-aligned box's faces."""
+    for k in range(3):
+        a, b = [j for j in range(3) if j != k]
+        for side, corner in ((-1.0, lo), (1.0, hi)):
+            if k == 2 and side < 0 and not bottom:
+                continue
+            o = lo.copy()
+            o[k] = corner[k]
+            e1, e2, n = np.zeros(3), np.zeros(3), np.zeros(3)
+            e1[a], e2[b], n[k] = hi[a] - lo[a], hi[b] - lo[b], -side if inward else side
+            yield o, e1, e2, n
+
+
+def _sample_faces(rng: np.random.Generator, faces, density: float) -> tuple[np.ndarray, np.ndarray]:
+    pts, nrm = [np.zeros((0, 3))], [np.zeros((0, 3))]
+    for o, e1, e2, n in faces:
+        m = rng.poisson(np.linalg.norm(e1) * np.linalg.norm(e2) * density)
+        uv = rng.random((m, 2))
+        pts.append(o + uv[:, :1] * e1 + uv[:, 1:] * e2)
+        nrm.append(np.tile(n, (m, 1)))
+    return np.concatenate(pts), np.concatenate(nrm)
+
+
+def make_room(traj_p: np.ndarray, cfg: TrackGenConfig,
+              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks on the room around ``traj_p`` (N, 3): points (L, 3) and surface normals (L, 3)."""
+    lo = traj_p.min(0) - [cfg.margin_xy_m, cfg.margin_xy_m, cfg.floor_margin_m]
+    hi = traj_p.max(0) + [cfg.margin_xy_m, cfg.margin_xy_m, cfg.ceiling_margin_m]
+    area = 2 * sum(np.prod(np.delete(hi - lo, k)) for k in range(3))
+    density = min(cfg.points_per_m2, cfg.max_points / area)
+    pts, nrm = _sample_faces(rng, _box_faces(lo, hi, inward=True), density)
+    sub = traj_p[:: max(1, len(traj_p) // 2000)]
+    for _ in range(cfg.n_clutter_boxes):
+        for _try in range(50):
+            size = rng.uniform([0.4, 0.4, 0.4], [1.2, 1.2, 1.5])
+            blo = np.append(rng.uniform(lo[:2], hi[:2] - size[:2]), lo[2])
+            bhi = blo + size
+            if not np.any(np.all((sub > blo - 0.5) & (sub < bhi + 0.5), axis=1)):
+                p, n = _sample_faces(rng, _box_faces(blo, bhi, inward=False, bottom=False),
+                                     cfg.clutter_points_per_m2)
+                pts, nrm = np.concatenate([pts, p]), np.concatenate([nrm, n])
+                break
+    return pts, nrm
+
+
+def _visible(cfg: TrackGenConfig, cam: CameraCalib, pts: np.ndarray, nrm: np.ndarray,
+             R_w_c: np.ndarray, p_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Visible points from camera pose (R_w_c, p_w_c): mask (L,), normalized uv (L, 2), pixels (L, 2)."""
+    p_c = (pts - p_w_c) @ R_w_c  # rows are R_c_w (p_w - p_w_c)
+    z = p_c[:, 2]
+    rng_m = np.linalg.norm(p_c, axis=1)
+    ok = (z > cfg.min_depth_m) & (rng_m < cfg.max_range_m)
+    uv = p_c[:, :2] / np.where(ok, z, 1.0)[:, None]
+    fx, fy, cx, cy = cam.intrinsics
+    px = np.stack([fx * uv[:, 0] + cx, fy * uv[:, 1] + cy], -1)  # pinhole bounds (spec)
+    b = cfg.border_px
+    ok &= np.all((px >= b) & (px <= [cam.width - 1 - b, cam.height - 1 - b]), axis=1)
+    cos_inc = np.sum(nrm * (p_w_c - pts), axis=1) / np.maximum(rng_m, 1e-12)
+    ok &= cos_inc > np.cos(np.radians(cfg.max_incidence_deg))  # drop grazing views and back faces
+    return ok, uv, px
+
+
+def _pick_new(cand: np.ndarray, kept: np.ndarray, px: np.ndarray, need: int, cam: CameraCalib,
+              cfg: TrackGenConfig, rng: np.random.Generator) -> np.ndarray:
+    """Choose ``need`` new points from ``cand``: first one per image cell not holding a kept track."""
+    gx, gy = cfg.grid
+
+    def cell(idx: np.ndarray) -> np.ndarray:
+        cx = np.clip((px[idx, 0] * gx / cam.width).astype(int), 0, gx - 1)
+        cy = np.clip((px[idx, 1] * gy / cam.height).astype(int), 0, gy - 1)
+        return cx + gx * cy
+
+    cand = rng.permutation(cand)
+    occupied = np.zeros(gx * gy, dtype=bool)
+    occupied[cell(kept)] = True
+    cc = cell(cand)
+    free = cand[~occupied[cc]]
+    _, first = np.unique(cc[~occupied[cc]], return_index=True)
+    chosen = rng.permutation(free[first])[:need]
+    if len(chosen) < need:
+        rest = cand[~np.isin(cand, chosen)]
+        chosen = np.concatenate([chosen, rest[: need - len(chosen)]])
+    return chosen
+
+
+def _track(cfg: TrackGenConfig, cam: CameraCalib, pts: np.ndarray, nrm: np.ndarray, R_w_c: np.ndarray,
+           p_w_c: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """KLT-like tracking over frames. Returns (frame (M,), point (M,), id (M,), uv (M, 2), px (M, 2),
+    n_visible (F,)); a track lives a geometric number of frames, a lost point gets a new id."""
+    n = len(pts)
+    tid = np.full(n, -1, dtype=np.int64)
+    life = np.zeros(n, dtype=np.int64)
+    cool = np.zeros(n, dtype=np.int64)
+    next_id = 1
+    out: list[tuple] = []
+    n_vis = np.zeros(len(p_w_c), dtype=np.int64)
+    for k in range(len(p_w_c)):
+        vis, uv, px = _visible(cfg, cam, pts, nrm, R_w_c[k], p_w_c[k])
+        n_vis[k] = vis.sum()
+        cont = (tid >= 0) & vis & (life > 0)
+        ended = (tid >= 0) & ~cont
+        tid[ended] = -1
+        cool[ended] = k + cfg.redetect_cooldown
+        need = cfg.max_features - int(cont.sum())
+        if need > 0:
+            new = _pick_new(np.flatnonzero(vis & ~cont & (cool <= k)), np.flatnonzero(cont),
+                            px, need, cam, cfg, rng)
+            tid[new] = np.arange(next_id, next_id + len(new))
+            life[new] = rng.geometric(1.0 / cfg.mean_track_len, size=len(new))
+            next_id += len(new)
+        idx = np.flatnonzero(tid >= 0)
+        idx = idx[np.argsort(tid[idx])]
+        life[idx] -= 1
+        out.append((np.full(len(idx), k), idx, tid[idx], uv[idx], px[idx]))
+    cols = [np.concatenate([o[j] for o in out]) for j in range(5)]
+    return (*cols, n_vis)
+
+
+def _add_outliers(cfg: TrackGenConfig, cam: CameraCalib, frame: np.ndarray, uv: np.ndarray,
+                  px: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Corrupt ``uv`` (M, 2) in place; returns outlier kind (M,): 1 displaced, 2 id-swapped pair."""
+    fx, fy = cam.intrinsics[:2]
+    m = len(frame)
+    kind = np.zeros(m, dtype=np.int8)
+    total = rng.binomial(m, cfg.outlier_rate) if m else 0
+    n_swaps = int(round(total * cfg.swap_fraction / 2))
+    starts = np.searchsorted(frame, np.arange(frame.max() + 2)) if m else np.zeros(1, int)
+    for _ in range(50 * n_swaps):
+        if n_swaps == 0:
+            break
+        j = int(rng.integers(m))
+        mates = np.arange(starts[frame[j]], starts[frame[j] + 1])
+        far = np.linalg.norm(px[mates] - px[j], axis=1) >= cfg.outlier_px[0]  # a visible swap
+        mates = mates[(kind[mates] == 0) & far]
+        if kind[j] or not mates.size:
+            continue
+        i = int(rng.choice(mates))
+        uv[[i, j]] = uv[[j, i]]
+        kind[[i, j]] = 2
+        n_swaps -= 1
+    n_disp = max(total - int(np.sum(kind == 2)), 0)
+    sel = rng.choice(np.flatnonzero(kind == 0), size=min(n_disp, int(np.sum(kind == 0))), replace=False)
+    mag = rng.uniform(*cfg.outlier_px, size=(len(sel), 1))
+    ang = rng.uniform(0, 2 * np.pi, size=(len(sel), 8))
+    cand = px[sel][:, None, :] + mag[:, :, None] * np.stack([np.cos(ang), np.sin(ang)], -1)
+    inside = ((cand[..., 0] >= 0) & (cand[..., 0] <= cam.width - 1)
+              & (cand[..., 1] >= 0) & (cand[..., 1] <= cam.height - 1))
+    pick = cand[np.arange(len(sel)), np.argmax(inside, axis=1)]  # first direction staying inside
+    uv[sel] += (pick - px[sel]) / [fx, fy]
+    kind[sel] = 1
+    return kind
+
+
+def _frame_stamps(cfg: TrackGenConfig, gt_t: np.ndarray, imu_t: np.ndarray, td: int) -> np.ndarray:
+    """Regular camera grid (int64 ns) anchored on an IMU stamp; stamp + td inside the GT span,
+    stamp and stamp + td inside the IMU span with ``imu_margin_s`` to spare."""
+    margin = int(round(cfg.imu_margin_s * 1e9))
+    lo = max(gt_t[0] - td, imu_t[0] + margin, imu_t[0] + margin - td,
+             gt_t[0] + int(round(cfg.start_s * 1e9)))
+    hi = min(gt_t[-1] - td, imu_t[-1] - margin, imu_t[-1] - margin - td)
+    if cfg.duration_s is not None:
+        hi = min(hi, gt_t[0] + int(round((cfg.start_s + cfg.duration_s) * 1e9)))
+    i0 = int(np.searchsorted(imu_t, lo, "left"))
+    t0 = int(imu_t[min(i0, len(imu_t) - 1)])
+    step = int(round(1e9 / cfg.rate_hz))
+    return np.arange(t0, hi + 1, step, dtype=np.int64) if hi >= t0 else np.zeros(0, np.int64)
+
+
+def _write_outputs(src: Path, out: Path, res: TrackGenResult, gt: _Table, gt_tum: bool, imu: _Table,
+                   truth: dict) -> None:
+    m = out / "mav0"
+    for d in ("cam0", "imu0", _GT_DIR):
+        (m / d).mkdir(parents=True, exist_ok=True)
+    for rel in ("cam0/sensor.yaml", "imu0/sensor.yaml", f"{_GT_DIR}/sensor.yaml", "body.yaml"):
+        if (src / rel).exists():
+            shutil.copyfile(src / rel, m / rel)
+    t = res.t_ns
+    (m / "cam0/data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{s},{s}.png\n" for s in t))
+    rows = "".join(f"{t[f]},{f},{i},{u:.12f},{v:.12f}\n" for f, i, (u, v) in
+                   zip(res.frame_idx.tolist(), res.landmark_id.tolist(), res.uv.tolist()))
+    (m / "cam0/features.csv").write_text("timestamp_ns,frame_idx,landmark_id,u_norm,v_norm\n" + rows)
+    margin = int(round(truth["config"]["imu_margin_s"] * 1e9))
+    t_lo, t_hi = min(t[0], t[0] + res.td_ns) - margin, max(t[-1], t[-1] + res.td_ns) + margin
+    imu.write_slice(m / "imu0/data.csv", t_lo, t_hi)
+    gt.write_slice(m / _GT_DIR / ("groundtruth_tum.txt" if gt_tum else "data.csv"), t_lo, t_hi, pad=1)
+    lm = zip(res.landmark_ids.tolist(), res.landmark_p_w.tolist())
+    (out / "landmarks.csv").write_text("landmark_id,p_w_x,p_w_y,p_w_z\n" + "".join(
+        f"{i},{x!r},{y!r},{z!r}\n" for i, (x, y, z) in lm))  # repr: exact float round trip
+    (out / "sim_truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None))
+
+
+def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult:
+    """Generate a feature-track dataset from ``src`` (a folder holding ``mav0/`` or the
+    ``mav0`` folder itself, with imu0, ground truth and cam0/sensor.yaml) into ``out/mav0``."""
+    src, out = find_mav0(src), Path(out)
+    cam = read_camera(src / "cam0" / "sensor.yaml")
+    imu = _read(src / "imu0" / "data.csv", 6)
+    gt, gt_p, gt_q, gt_tum = read_groundtruth(src)
+    td = int(round(cfg.td_s * 1e9))
+    t_ns = _frame_stamps(cfg, gt.t_ns, imu.t_ns, td)
+    if len(t_ns) < 2:
+        raise DataError(src, f"fewer than 2 camera frames fit the GT/IMU span for start={cfg.start_s}s "
+                             f"duration={cfg.duration_s}s td={cfg.td_s}s")
+    seeds = np.random.SeedSequence(cfg.seed).spawn(4)
+    rng_room, rng_track, rng_noise, rng_out = (np.random.default_rng(s) for s in seeds)
+    pts, nrm = make_room(gt_p, cfg, rng_room)
+    p_w_b, R_w_b = interpolate_gt(gt.t_ns, gt_p, gt_q, t_ns + td)
+    R_b_c, t_b_c = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
+    R_w_c, p_w_c = R_w_b @ R_b_c, p_w_b + R_w_b @ t_b_c
+    frame, point, ids, uv_true, px, n_vis = _track(cfg, cam, pts, nrm, R_w_c, p_w_c, rng_track)
+    fx, fy = cam.intrinsics[:2]
+    uv = uv_true + rng_noise.standard_normal(uv_true.shape) * (cfg.noise_px * np.array([1 / fx, 1 / fy]))
+    kind = _add_outliers(cfg, cam, frame, uv, px, rng_out)
+    lm_ids, first = np.unique(ids, return_index=True)
+    res = TrackGenResult(out, t_ns, td, frame, ids, uv, uv_true, kind, lm_ids, pts[point[first]],
+                         n_vis, len(pts))
+    fpf, tl = res.features_per_frame, res.track_lengths
+    truth = {
+        "generator": "vio.sim.tracks", "source": str(src), "seed": cfg.seed,
+        "td_s": cfg.td_s, "td_ns": td, "noise_px": cfg.noise_px,
+        "noise_norm": [cfg.noise_px / fx, cfg.noise_px / fy], "outlier_rate": cfg.outlier_rate,
+        "n_frames": len(t_ns), "n_observations": len(ids), "n_landmark_points": len(pts),
+        "n_landmark_ids": len(lm_ids), "landmarks_file": "landmarks.csv",
+        "features_per_frame": {"mean": float(fpf.mean()), "min": int(fpf.min()), "max": int(fpf.max())},
+        "track_length": {"mean": float(tl.mean()), "median": float(np.median(tl)), "max": int(tl.max())},
+        "n_outliers": int(np.count_nonzero(kind)),
+        "outliers": [[int(f), int(i), "displaced" if k == 1 else "swapped"]
+                     for f, i, k in zip(frame[kind > 0], ids[kind > 0], kind[kind > 0])],
+        "config": to_dict(cfg),
+    }
+    _write_outputs(src, out, res, gt, gt_tum, imu, truth)
+    return res
