@@ -1,0 +1,65 @@
+"""Parameters of the image front end (KLT tracking + stereo matching)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    """Front-end parameters; load with ``vio.config.from_dict(FrontendConfig, d)``.
+
+    Pixel thresholds are in distorted-image pixels unless noted. Thresholds that act on
+    the normalized plane (RANSAC, epipolar) are given in pixels and divided by the
+    camera's fx internally (VINS' virtual-focal convention).
+    """
+
+    # detection (Shi-Tomasi, cv2.goodFeaturesToTrack)
+    max_features: int = 150
+    min_dist_px: int = 30           # radius of the mask circle around each track
+    quality_level: float = 0.01
+    block_size: int = 3
+    border_px: int = 2              # tracks closer than this to the edge are dropped
+    # pyramidal Lucas-Kanade
+    lk_window: int = 21
+    lk_levels: int = 3              # extra pyramid levels above full resolution
+    lk_max_iter: int = 30
+    lk_eps: float = 0.01
+    fb_check: bool = True
+    fb_threshold_px: float = 0.5    # forward-backward round-trip error
+    # geometric outlier rejection between consecutive frames
+    ransac: bool = True
+    ransac_model: Literal["fundamental", "essential"] = "fundamental"
+    ransac_threshold_px: float = 1.0
+    ransac_confidence: float = 0.99
+    # contrast equalisation
+    clahe: bool = True              # VINS-Fusion's EuRoC setting (equalize: 1)
+    clahe_clip: float = 3.0
+    clahe_tiles: int = 8
+    # stereo matching cam0 -> cam1
+    stereo: bool = True
+    stereo_init_depth_m: float = 3.0   # rough depth for the first LK guess in cam1
+    stereo_lk_levels: int = 2          # the guess is close: fewer levels, fewer ambiguities
+    stereo_gain_compensation: bool = True  # scale cam1 to cam0's mean brightness
+    stereo_fb_threshold_px: float = 1.0
+    stereo_epipolar_px: float = 1.5    # max distance to the epipolar line
+    min_depth_m: float = 0.1           # closer triangulations reject the match
+    max_depth_m: float = 100.0         # farther ones keep the match, depth NaN
+
+    def __post_init__(self) -> None:
+        positive = ("max_features", "min_dist_px", "lk_window", "lk_max_iter", "block_size",
+                    "fb_threshold_px", "ransac_threshold_px", "clahe_clip", "clahe_tiles",
+                    "stereo_init_depth_m", "stereo_fb_threshold_px", "stereo_epipolar_px",
+                    "min_depth_m", "max_depth_m", "quality_level", "lk_eps")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"FrontendConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        if min(self.lk_levels, self.stereo_lk_levels, self.border_px) < 0:
+            raise ValueError("FrontendConfig.lk_levels, stereo_lk_levels and border_px must be >= 0")
+        if self.lk_window < 5:
+            raise ValueError(f"FrontendConfig.lk_window must be >= 5, got {self.lk_window}")
+        if not 0.0 < self.ransac_confidence < 1.0:
+            raise ValueError("FrontendConfig.ransac_confidence must be in (0, 1)")
+        if self.max_depth_m <= self.min_depth_m:
+            raise ValueError("FrontendConfig.max_depth_m must exceed min_depth_m")
