@@ -21,7 +21,6 @@ class ImuNoiseConfig:
     scale_walk: float = 5.0
     gravity: float = 9.81
     integration_sigma: float = 1e-4
-    bias_init_sigma: float = 1e-5
 
 
 def combined_params(calib: ImuCalib, cfg: ImuNoiseConfig = ImuNoiseConfig()
@@ -34,7 +33,6 @@ def combined_params(calib: ImuCalib, cfg: ImuNoiseConfig = ImuNoiseConfig()
     p.setBiasOmegaCovariance((cfg.scale_walk * calib.gyro_random_walk) ** 2 * I3)
     p.setBiasAccCovariance((cfg.scale_walk * calib.accel_random_walk) ** 2 * I3)
     p.setIntegrationCovariance(cfg.integration_sigma ** 2 * I3)
-    p.setBiasAccOmegaInit(cfg.bias_init_sigma ** 2 * np.eye(6))
     return p
 
 

@@ -1,0 +1,98 @@
+"""Backend configuration (one frozen dataclass per concern, loadable from YAML)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from vio.imu import ImuNoiseConfig
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    """Keyframe policy: a frame becomes a keyframe when the mean feature parallax
+    since the last keyframe reaches ``min_parallax_px``, when ``max_interval_s``
+    has elapsed, or when fewer than ``min_tracked`` features remain tracked."""
+
+    min_parallax_px: float = 20.0
+    max_interval_s: float = 0.25
+    min_interval_s: float = 0.0
+    min_tracked: int = 12
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    """Initialization. Static: the first ``static_window_s`` of IMU must be still
+    (50-ms mean gyro within ``max_gyro_std`` rad/s and accel within ``max_accel_std``
+    m/s^2 of the window mean,
+    features below ``max_still_flow_px`` px/frame). Otherwise dynamic initialization
+    (visual-inertial alignment) runs on ``dynamic_window_s`` of keyframes."""
+
+    static_window_s: float = 0.5
+    max_gyro_std: float = 0.05
+    max_accel_std: float = 0.6
+    max_still_flow_px: float = 1.0
+    dynamic_window_s: float = 1.5
+    prior_pos_sigma: float = 1e-3
+    prior_yaw_sigma: float = 1e-3
+    prior_rp_sigma: float = 0.02
+    prior_vel_sigma: float = 0.05
+    prior_gyro_bias_sigma: float = 0.01
+    prior_accel_bias_sigma: float = 0.2
+    zupt_sigma: float = 0.01
+
+
+@dataclass(frozen=True)
+class VisionConfig:
+    """Visual factors. ``pixel_sigma`` is converted to normalized units with fx.
+    ``kernel``: robust kernel per observation; ``outlier_px``: landmarks whose worst
+    reprojection error exceeds it after an update are removed."""
+
+    model: Literal["pinhole", "sphere"] = "pinhole"
+    use_td: bool = True
+    pixel_sigma: float = 1.0
+    kernel: Literal["huber", "cauchy", "none"] = "huber"
+    kernel_k: float = 1.345
+    outlier_px: float = 6.0
+    min_parallax_deg: float = 1.0
+    max_wait_keyframes: int = 6
+    default_depth_m: float = 5.0
+    min_depth_m: float = 0.1
+    max_depth_m: float = 100.0
+
+
+@dataclass(frozen=True)
+class CalibConfig:
+    """Online calibration. When off, extrinsic and td are held by tight priors."""
+
+    estimate_extrinsic: bool = False
+    estimate_td: bool = True
+    extrinsic_rot_sigma: float = 0.01
+    extrinsic_pos_sigma: float = 0.01
+    td_sigma: float = 0.01
+    fixed_sigma: float = 1e-6
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Fixed-lag smoother. ``lag_s``: window length; ``relinearize_*`` map onto
+    ``ISAM2Params``. QR factorization avoids GTSAM 4.3's Cholesky rejecting
+    ill-conditioned (not singular) pivots on real data."""
+
+    lag_s: float = 2.5
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 10
+    factorization: Literal["QR", "CHOLESKY"] = "QR"
+    extra_iterations: int = 0
+
+
+@dataclass(frozen=True)
+class BackendConfig:
+    """All backend parameters."""
+
+    imu: ImuNoiseConfig = field(default_factory=ImuNoiseConfig)
+    keyframe: KeyframeConfig = field(default_factory=KeyframeConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    vision: VisionConfig = field(default_factory=VisionConfig)
+    calib: CalibConfig = field(default_factory=CalibConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)

@@ -1,0 +1,208 @@
+"""The backend facade: a fixed-lag iSAM2 smoother over keyframe states, IMU and
+landmark factors.
+
+The smoother's ``Values`` is the only copy of the estimator state; ``Track``
+objects hold measurements and graph bookkeeping. Landmarks are inverse depths
+anchored in their first keyframe of the window. A live landmark whose anchor is
+about to be marginalized is re-anchored (new key in the next observing keyframe,
+observations of the leaving keyframe dropped); a landmark that is no longer
+observed is marginalized together with its anchor so its information stays in
+the smoother's marginal prior.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from vio.backend import graph
+from vio.backend.config import BackendConfig
+from vio.backend.init import InitialState
+from vio.backend.landmarks import Track
+from vio.backend.tracks import LandmarkManager
+from vio.imu import combined_params, integrate
+from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
+
+log = logging.getLogger(__name__)
+X, V, B = graph.X, graph.V, graph.B
+
+
+@dataclass(frozen=True)
+class KeyframeResult:
+    """Outcome of one keyframe update: the new state and some health figures."""
+
+    k: int
+    t_ns: int
+    T_w_b: gtsam.Pose3
+    v_w: np.ndarray
+    bias: gtsam.imuBias.ConstantBias
+    n_landmarks: int
+    n_removed: int
+    recovered: bool
+
+
+class Estimator:
+    """Fixed-lag VIO backend. Call ``initialize``, then per frame ``add_imu`` and, for
+    keyframes, ``add_keyframe``; ``predict`` gives the IMU-propagated current state."""
+
+    def __init__(self, imu_calib: ImuCalib, cam: CameraCalib, cfg: BackendConfig,
+                 td0_s: float = 0.0) -> None:
+        self.cfg = cfg
+        self.cam = cam
+        self.params = combined_params(imu_calib, cfg.imu)
+        self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
+        self.td0 = 0.0  # residual td prior mean (the sync layer applies td0_s)
+        self.td_applied_s = td0_s
+        self.lm = LandmarkManager(self)
+        self.values = gtsam.Values()
+        self.k = -1
+        self.kf_t: dict[int, int] = {}
+        self.recoveries = 0
+        self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
+
+    # ------------------------------------------------------------------ setup
+    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        s = self.cfg.solver
+        p = gtsam.ISAM2Params()
+        p.setFactorization(s.factorization)
+        p.setRelinearizeThreshold(s.relinearize_threshold)
+        p.relinearizeSkip = s.relinearize_skip
+        return gtsam.IncrementalFixedLagSmoother(s.lag_s, p)
+
+    def initialize(self, state: InitialState, T_b_c: gtsam.Pose3 | None = None,
+                   td_s: float | None = None) -> None:
+        """Start the window at ``state`` (keyframe 0)."""
+        self.smoother = self._new_smoother()
+        self.k = 0
+        self.kf_t = {0: state.t_ns}
+        T_b_c = self.cam.T_b_c if T_b_c is None else T_b_c
+        td = self.td0 if td_s is None else td_s
+        g = graph.state_priors(0, state, self.cfg.init)
+        g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
+        v = gtsam.Values()
+        v.insert(X(0), state.T_w_b)
+        v.insert(V(0), state.v_w)
+        v.insert(B(0), state.bias)
+        v.insert(graph.EXTRINSIC, T_b_c)
+        v.insert(graph.TD, np.array([td]))
+        t = state.t_ns * 1e-9
+        self.smoother.update(g, v, {X(0): t, V(0): t, B(0): t, graph.EXTRINSIC: t, graph.TD: t})
+        self.values = self.smoother.calculateEstimate()
+        self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, state.bias)
+
+    @property
+    def initialized(self) -> bool:
+        return self.smoother is not None
+
+    # --------------------------------------------------------------- per frame
+    def add_imu(self, seg: ImuData) -> None:
+        """Preintegrate a packet's IMU segment (since the previous frame)."""
+        integrate(self.pim, seg)
+
+    def latest(self) -> tuple[gtsam.Pose3, np.ndarray, gtsam.imuBias.ConstantBias]:
+        """Estimate of the newest keyframe."""
+        return (self.values.atPose3(X(self.k)), self.values.atVector(V(self.k)),
+                self.values.atConstantBias(B(self.k)))
+
+    def predict(self) -> gtsam.NavState:
+        """Current state: the newest keyframe propagated with the IMU since."""
+        T, v, b = self.latest()
+        return self.pim.predict(gtsam.NavState(T, v), b)
+
+    def add_keyframe(self, t_ns: int, features: FeatureFrame, still: bool = False) -> KeyframeResult:
+        """Insert a keyframe at ``t_ns`` with the IMU integrated since the last one."""
+        k0, k1 = self.k, self.k + 1
+        pred = self.predict()
+        _, _, b0 = self.latest()
+        g = gtsam.NonlinearFactorGraph()
+        v = gtsam.Values()
+        g.add(graph.imu_factor(k0, k1, self.pim))
+        if still:
+            g.add(graph.zero_velocity(k1, self.cfg.init.zupt_sigma))
+        v.insert(X(k1), pred.pose())
+        v.insert(V(k1), pred.velocity())
+        v.insert(B(k1), b0)
+        t = t_ns * 1e-9
+        stamps = {X(k1): t, V(k1): t, B(k1): t, graph.EXTRINSIC: t, graph.TD: t}
+        self.k = k1
+        self.kf_t[k1] = t_ns
+        self.lm.observe(k1, features)
+        leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
+        removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
+        recovered = False
+        try:
+            self._update(g, v, stamps, removals)
+        except RuntimeError as exc:
+            self._recover(exc, k0, k1, pred, b0, t_ns)
+            recovered = True
+        for k in leaving:
+            self.kf_t.pop(k, None)
+        n_removed = 0 if recovered else self._remove_outliers(t)
+        self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
+        T, vel, bias = self.latest()
+        return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
+
+    def _update(self, g, v, stamps, removals) -> None:
+        self.smoother.update(g, v, stamps, removals)
+        self.lm.record_factor_indices(self.smoother.getISAM2Result().getNewFactorsIndices())
+        for _ in range(self.cfg.solver.extra_iterations):
+            self.smoother.update()
+        self.values = self.smoother.calculateEstimate()
+
+    def _remove_outliers(self, t: float) -> int:
+        g, stamps, removals, n = self.lm.outlier_removals(self.values, t)
+        if n:
+            try:
+                self._update(g, gtsam.Values(), stamps, removals)
+            except RuntimeError as exc:
+                T, v, b = self.latest()
+                self._recover(exc, self.k, self.k, gtsam.NavState(T, v), b, self.kf_t[self.k])
+        return n
+
+    # ---------------------------------------------------------------- recovery
+    def _recover(self, exc: Exception, k0: int, k1: int, pred: gtsam.NavState,
+                 b0: gtsam.imuBias.ConstantBias, t_ns: int) -> None:
+        """Restart the window from the last good state after a solver failure."""
+        self.recoveries += 1
+        log.error("solver failure at keyframe %d (%s): re-initializing from the last good "
+                  "state (recovery #%d)", k1, str(exc).splitlines()[0][:120], self.recoveries)
+        good = self.values
+        T_b_c = good.atPose3(graph.EXTRINSIC)
+        td = float(good.atVector(graph.TD)[0])
+        state = InitialState(t_ns, pred.pose(), pred.velocity(), b0, "recovery")
+        self.lm.reset()
+        self.smoother = self._new_smoother()
+        sig = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
+        g = graph.state_priors(k1, state, self.cfg.init, sig)
+        g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
+        v = gtsam.Values()
+        v.insert(X(k1), state.T_w_b)
+        v.insert(V(k1), state.v_w)
+        v.insert(B(k1), state.bias)
+        v.insert(graph.EXTRINSIC, T_b_c)
+        v.insert(graph.TD, np.array([td]))
+        t = t_ns * 1e-9
+        self.kf_t = {k1: t_ns}
+        self.smoother.update(g, v, {X(k1): t, V(k1): t, B(k1): t, graph.EXTRINSIC: t, graph.TD: t})
+        self.values = self.smoother.calculateEstimate()
+
+    # ----------------------------------------------------------------- outputs
+    def extrinsic(self) -> gtsam.Pose3:
+        return self.values.atPose3(graph.EXTRINSIC)
+
+    def td(self) -> float:
+        """Total camera-to-IMU offset (s): the sync layer's constant plus the estimate."""
+        return self.td_applied_s + float(self.values.atVector(graph.TD)[0])
+
+    def landmarks_w(self) -> np.ndarray:
+        """(N, 3) world points of the active landmarks."""
+        return self.lm.points_w(self.values)
+
+    def window_poses(self) -> dict[int, tuple[int, gtsam.Pose3]]:
+        """Smoothed poses of the keyframes in the window: k -> (t_ns, T_w_b)."""
+        return {k: (t, self.values.atPose3(X(k))) for k, t in self.kf_t.items()
+                if self.values.exists(X(k))}

@@ -1,0 +1,65 @@
+"""Landmark bookkeeping: which keyframes observed a track, its anchor and its keys.
+
+This holds measurements and graph bookkeeping only; every estimate (inverse
+depth, poses) lives in the smoother's ``Values``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Obs:
+    """One observation: normalized coordinates (2,), velocity (2,) 1/s, pixel row."""
+
+    uv: np.ndarray
+    velocity: np.ndarray
+    row: float
+
+
+@dataclass
+class Track:
+    """A landmark's observations by keyframe index, its current inverse-depth key
+    (anchored in keyframe ``anchor``), and the index of its factor in the smoother."""
+
+    lid: int
+    obs: dict[int, Obs] = field(default_factory=dict)
+    key: int | None = None
+    anchor: int | None = None
+    factor_index: int | None = None
+    waited: int = 0
+    rejected: bool = False
+
+    def frames(self) -> list[int]:
+        return sorted(self.obs)
+
+
+def bearing_depth(anchor_uv: np.ndarray, T_w_ca: gtsam.Pose3,
+                  others: list[tuple[np.ndarray, gtsam.Pose3]]) -> tuple[float, float]:
+    """Depth along the anchor ray (z in the anchor camera, m) by linear least squares
+    over the other views, and the largest ray angle (deg) between anchor and others.
+
+    For each other camera j: ``m_j x (R_ja d m_a + t_ja) = 0`` is linear in ``d``.
+    Returns ``(nan, angle)`` when the system is degenerate.
+    """
+    m_a = np.array([anchor_uv[0], anchor_uv[1], 1.0])
+    A, b, max_angle = [], [], 0.0
+    ray_a_w = T_w_ca.rotation().matrix() @ m_a
+    for uv, T_w_cj in others:
+        m_j = np.array([uv[0], uv[1], 1.0])
+        T_j_a = T_w_cj.between(T_w_ca)
+        R, t = T_j_a.rotation().matrix(), T_j_a.translation()
+        A.append(np.cross(m_j, R @ m_a))
+        b.append(-np.cross(m_j, t))
+        ray_j_w = T_w_cj.rotation().matrix() @ m_j
+        cosang = ray_a_w @ ray_j_w / (np.linalg.norm(ray_a_w) * np.linalg.norm(ray_j_w))
+        max_angle = max(max_angle, float(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
+    a, bb = np.concatenate(A), np.concatenate(b)
+    denom = float(a @ a)
+    if denom < 1e-12:
+        return float("nan"), max_angle
+    return float(a @ bb) / denom, max_angle

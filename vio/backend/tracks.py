@@ -1,0 +1,210 @@
+"""Landmark life cycle inside the fixed-lag window.
+
+Per keyframe: new observations are appended; a track enters the graph once its
+depth can be triangulated (or it has waited long enough); its factor is rebuilt
+whenever it gains an observation; live tracks are re-anchored before their
+anchor is marginalized; dead tracks are marginalized with their anchor; tracks
+with large reprojection errors or non-positive depth are removed.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import gtsam
+import numpy as np
+
+from vio.backend import graph
+from vio.backend.landmarks import Obs, Track, bearing_depth
+from vio.io.types import FeatureFrame
+
+if TYPE_CHECKING:
+    from vio.backend.estimator import Estimator
+
+WEAK = gtsam.noiseModel.Isotropic.Sigma(1, 10.0)
+
+
+class LandmarkManager:
+    """Owns the ``Track`` table of an ``Estimator``."""
+
+    def __init__(self, est: "Estimator") -> None:
+        self.est = est
+        self.tracks: dict[int, Track] = {}
+        self.rejected: set[int] = set()
+        self._next_key = 0
+        self._pending: list[tuple[Track, int]] = []
+
+    # ------------------------------------------------------------ bookkeeping
+    def observe(self, k: int, fr: FeatureFrame) -> None:
+        for lid, uv, vel, row in zip(fr.ids, fr.uv, fr.velocity, fr.row):
+            lid = int(lid)
+            if lid in self.rejected:
+                continue
+            tr = self.tracks.setdefault(lid, Track(lid))
+            tr.obs[k] = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row))
+
+    def n_active(self) -> int:
+        return sum(1 for t in self.tracks.values() if t.key is not None)
+
+    def reset(self) -> None:
+        """After a solver restart: forget keys and factors, keep the newest observations."""
+        k = self.est.k
+        for tr in self.tracks.values():
+            tr.key = tr.anchor = tr.factor_index = None
+            tr.obs = {f: o for f, o in tr.obs.items() if f == k}
+            tr.waited = 0
+        self.tracks = {i: t for i, t in self.tracks.items() if t.obs}
+        self._pending = []
+
+    def _new_key(self) -> int:
+        self._next_key += 1
+        return graph.L(self._next_key)
+
+    def record_factor_indices(self, indices) -> None:
+        idx = list(indices)
+        for tr, pos in self._pending:
+            tr.factor_index = int(idx[pos])
+        self._pending = []
+
+    # ----------------------------------------------------------- graph update
+    def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
+                       g: gtsam.NonlinearFactorGraph, v: gtsam.Values,
+                       stamps: dict) -> list[int]:
+        """Add this keyframe's landmark factors to ``g``/``v``/``stamps``; return the
+        smoother indices of factors to remove."""
+        removals: list[int] = []
+        t = self.est.kf_t[k] * 1e-9
+        leave = set(leaving)
+        for lid in list(self.tracks):
+            tr = self.tracks[lid]
+            live = k in tr.obs
+            p_w = None
+            if tr.anchor is not None and tr.anchor in leave:
+                if not live:      # dead: marginalized with its anchor this update
+                    del self.tracks[lid]
+                    continue
+                p_w = self._point_w(tr)
+                self._retire_key(tr, g, stamps, removals)
+            for f in [f for f in tr.obs if f in leave]:
+                del tr.obs[f]
+            if not tr.obs:
+                del self.tracks[lid]
+                continue
+            if p_w is not None:
+                self._reanchor(tr, p_w, k, pred, v)
+            if not live:
+                if tr.key is not None:
+                    stamps[tr.key] = self.est.kf_t[tr.anchor] * 1e-9
+                continue
+            if tr.key is None:
+                self._try_insert(tr, k, pred, v)
+            if tr.key is not None and len(tr.obs) >= 2:
+                if tr.factor_index is not None:
+                    removals.append(tr.factor_index)
+                    tr.factor_index = None
+                self._add_factor(tr, g)
+                stamps[tr.key] = t
+        return removals
+
+    def _retire_key(self, tr: Track, g: gtsam.NonlinearFactorGraph, stamps: dict,
+                    removals: list[int]) -> None:
+        """Detach a track's factor; its old key keeps a weak prior and is marginalized."""
+        if tr.factor_index is not None:
+            removals.append(tr.factor_index)
+        if tr.key is not None:
+            val = self.est.values.atVector(tr.key) if self.est.values.exists(tr.key) else np.ones(1)
+            g.add(gtsam.PriorFactorVector(tr.key, val, WEAK))
+            stamps[tr.key] = 0.0
+        tr.key = tr.anchor = tr.factor_index = None
+
+    def _point_w(self, tr: Track) -> np.ndarray | None:
+        vals = self.est.values
+        if tr.key is None or not vals.exists(tr.key):
+            return None
+        lam = float(vals.atVector(tr.key)[0])
+        if lam <= 0:
+            return None
+        a = tr.obs[tr.anchor]
+        T = vals.atPose3(graph.X(tr.anchor)).compose(vals.atPose3(graph.EXTRINSIC))
+        return T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
+
+    def _reanchor(self, tr: Track, p_w: np.ndarray, k: int, pred: gtsam.NavState,
+                  v: gtsam.Values) -> None:
+        """New key anchored in the oldest remaining frame, depth transferred from p_w."""
+        a = tr.frames()[0]
+        T_w_c = self._pose(a, k, pred).compose(self.est.values.atPose3(graph.EXTRINSIC))
+        z = T_w_c.transformTo(p_w)[2]
+        vc = self.est.cfg.vision
+        if vc.min_depth_m <= z <= vc.max_depth_m:
+            tr.key = self._new_key()
+            tr.anchor = a
+            v.insert(tr.key, np.array([1.0 / z]))
+
+    def _add_factor(self, tr: Track, g: gtsam.NonlinearFactorGraph) -> None:
+        frames = tr.frames()
+        cam = self.est.cam
+        fac = graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma,
+                                          cam.line_time_s, cam.height)
+        self._pending.append((tr, int(g.size())))
+        g.add(fac)
+
+    def _pose(self, f: int, k: int, pred: gtsam.NavState) -> gtsam.Pose3:
+        return pred.pose() if f == k else self.est.values.atPose3(graph.X(f))
+
+    def _try_insert(self, tr: Track, k: int, pred: gtsam.NavState, v: gtsam.Values) -> None:
+        """Give the track a key and an initial inverse depth once it is triangulable."""
+        frames = tr.frames()
+        if len(frames) < 2:
+            return
+        vc = self.est.cfg.vision
+        T_b_c = self.est.values.atPose3(graph.EXTRINSIC)
+        cams = [self._pose(f, k, pred).compose(T_b_c) for f in frames]
+        depth, angle = bearing_depth(tr.obs[frames[0]].uv, cams[0],
+                                     [(tr.obs[f].uv, c) for f, c in zip(frames[1:], cams[1:])])
+        ok = np.isfinite(depth) and vc.min_depth_m <= depth <= vc.max_depth_m
+        if not (ok and angle >= vc.min_parallax_deg):
+            tr.waited += 1
+            if tr.waited < vc.max_wait_keyframes:
+                return
+            if not ok:
+                depth = vc.default_depth_m
+        tr.key = self._new_key()
+        tr.anchor = frames[0]
+        v.insert(tr.key, np.array([1.0 / depth]))
+
+    # --------------------------------------------------------------- outliers
+    def outlier_removals(self, values: gtsam.Values, t: float
+                         ) -> tuple[gtsam.NonlinearFactorGraph, dict, list[int], int]:
+        """Factors of tracks whose worst reprojection error exceeds ``outlier_px`` or whose
+        depth left the valid range; those tracks are rejected for good."""
+        vc = self.est.cfg.vision
+        fx = self.est.cam.intrinsics[0]
+        g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
+        for lid in list(self.tracks):
+            tr = self.tracks[lid]
+            if tr.key is None or tr.factor_index is None:
+                continue
+            lam = float(values.atVector(tr.key)[0])
+            bad_depth = not (1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m)
+            err = graph.reprojection_errors(tr, tr.frames(), values) * fx
+            if bad_depth or (err.size and err.max() > vc.outlier_px):
+                self._retire_key(tr, g, stamps, removals)
+                del self.tracks[lid]
+                self.rejected.add(lid)
+                n += 1
+        return g, stamps, removals, n
+
+    def points_w(self, values: gtsam.Values) -> np.ndarray:
+        """(N, 3) world points of tracks in the graph."""
+        pts = []
+        T_b_c = values.atPose3(graph.EXTRINSIC)
+        for tr in self.tracks.values():
+            if tr.key is None or not values.exists(tr.key) or not values.exists(graph.X(tr.anchor)):
+                continue
+            lam = float(values.atVector(tr.key)[0])
+            if lam <= 0:
+                continue
+            a = tr.obs[tr.anchor]
+            T = values.atPose3(graph.X(tr.anchor)).compose(T_b_c)
+            pts.append(T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam))
+        return np.array(pts).reshape(-1, 3)

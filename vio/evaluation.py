@@ -1,0 +1,107 @@
+"""Trajectory evaluation with evo: ATE and RPE after SE3 (or Sim3) alignment.
+
+Ground truth appears only here (and in benchmarks), never in the estimator.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vio.io.types import GroundTruth
+
+
+@dataclass(frozen=True)
+class TrajectoryErrors:
+    """ATE (absolute translation error, m) and RPE (relative pose error over
+    ``rpe_delta_m`` metres of path: translation m, rotation deg) statistics."""
+
+    n_matched: int
+    ate_rmse: float
+    ate_mean: float
+    ate_max: float
+    rpe_trans_rmse: float
+    rpe_rot_rmse_deg: float
+    path_length: float
+    alignment: str
+
+
+def _evo_traj(t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray):
+    from evo.core.trajectory import PoseTrajectory3D
+    return PoseTrajectory3D(positions_xyz=np.asarray(p, float),
+                            orientations_quat_wxyz=np.asarray(q_wxyz, float),
+                            timestamps=np.asarray(t_ns, np.float64) * 1e-9)
+
+
+def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt: GroundTruth,
+             sim3: bool = False, max_diff_s: float = 0.01, rpe_delta_m: float = 1.0
+             ) -> TrajectoryErrors:
+    """Associate by time, align (SE3, or Sim3 for mono), and compute ATE/RPE."""
+    from evo.core import metrics, sync
+    est = _evo_traj(est_t_ns, est_p, est_q_wxyz)
+    ref = _evo_traj(gt.t_ns, gt.p_w, gt.q_wxyz)
+    ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff_s)
+    if est.num_poses < 3:
+        raise ValueError(f"only {est.num_poses} poses match the ground truth in time")
+    est = copy.deepcopy(est)
+    est.align(ref, correct_scale=sim3)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    s = ape.get_all_statistics()
+    path = float(ref.path_length)
+    delta = min(rpe_delta_m, max(path / 4, 1e-3))
+    rt = metrics.RPE(metrics.PoseRelation.translation_part, delta, metrics.Unit.meters, all_pairs=False)
+    rr = metrics.RPE(metrics.PoseRelation.rotation_angle_deg, delta, metrics.Unit.meters, all_pairs=False)
+    try:
+        rt.process_data((ref, est))
+        rr.process_data((ref, est))
+        rpe_t, rpe_r = rt.get_statistic(metrics.StatisticsType.rmse), rr.get_statistic(metrics.StatisticsType.rmse)
+    except Exception:  # noqa: BLE001 - too short for the RPE delta
+        rpe_t = rpe_r = float("nan")
+    return TrajectoryErrors(int(est.num_poses), float(s["rmse"]), float(s["mean"]), float(s["max"]),
+                            float(rpe_t), float(rpe_r), path, "sim3" if sim3 else "se3")
+
+
+def evaluate_files(est_path: str | Path, gt_path: str | Path, sim3: bool = False,
+                   plot: str | Path | None = None) -> TrajectoryErrors:
+    """ATE/RPE of a TUM estimate against a TUM file or an EuRoC folder / data.csv."""
+    from vio.io.euroc import read_groundtruth, read_tum
+    est = read_tum(Path(est_path))
+    gt_path = Path(gt_path)
+    if gt_path.is_dir():
+        from vio.io.euroc import find_mav0
+        gt = read_groundtruth(find_mav0(gt_path) / "state_groundtruth_estimate0")
+        if gt is None:
+            raise FileNotFoundError(f"{gt_path}: no ground truth found")
+    elif gt_path.suffix == ".csv":
+        gt = read_groundtruth(gt_path.parent)
+    else:
+        gt = read_tum(gt_path)
+    res = evaluate(est.t_ns, est.p_w, est.q_wxyz, gt, sim3)
+    if plot is not None:
+        save_plot(est, gt, res, Path(plot), sim3)
+    return res
+
+
+def save_plot(est: GroundTruth, gt: GroundTruth, res: TrajectoryErrors, path: Path, sim3: bool) -> None:
+    """Top view of the aligned estimate over the ground truth."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from evo.core import sync
+    ref, e = sync.associate_trajectories(_evo_traj(gt.t_ns, gt.p_w, gt.q_wxyz),
+                                         _evo_traj(est.t_ns, est.p_w, est.q_wxyz), max_diff=0.01)
+    e.align(ref, correct_scale=sim3)
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.plot(ref.positions_xyz[:, 0], ref.positions_xyz[:, 1], "k-", label="ground truth")
+    ax.plot(e.positions_xyz[:, 0], e.positions_xyz[:, 1], "r-", label="estimate")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"ATE RMSE {res.ate_rmse:.3f} m ({res.alignment})")
+    ax.legend()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,167 @@
+"""The pipeline loop: synchronized packets -> initialization -> keyframes -> backend.
+
+Stages exchange frozen dataclasses; the estimator never calls a visualization
+sink: sinks observe ``FrameOutput`` objects (``Pipeline.sinks``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import gtsam
+import numpy as np
+
+from vio.backend.config import BackendConfig
+from vio.backend.estimator import Estimator
+from vio.backend.init import imu_stillness, static_init
+from vio.imu import concat
+from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
+from vio.sync import FramePacket
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """``td_s``: camera-to-IMU offset applied by the sync layer (s);
+    ``backend``: estimator parameters."""
+
+    td_s: float = 0.0
+    backend: BackendConfig = field(default_factory=BackendConfig)
+
+
+@dataclass(frozen=True)
+class FrameOutput:
+    """The online estimate at one frame (``T_w_b`` body in world, ``v_w`` m/s)."""
+
+    index: int
+    t_ns: int
+    T_w_b: gtsam.Pose3
+    v_w: np.ndarray
+    bias: gtsam.imuBias.ConstantBias
+    keyframe: bool
+    still: bool
+    seconds: float
+    n_features: int
+    n_landmarks: int
+    td_s: float
+    T_b_c: gtsam.Pose3
+    landmarks_w: np.ndarray | None = None
+    features: FeatureFrame | None = None
+    packet: FramePacket | None = None
+
+
+class Pipeline:
+    """Feature-track VIO: feed ``FramePacket``s in time order to ``process``."""
+
+    def __init__(self, imu_calib: ImuCalib, cam: CameraCalib, cfg: PipelineConfig) -> None:
+        self.cfg = cfg
+        self.cam = cam
+        self.est = Estimator(imu_calib, cam, cfg.backend, cfg.td_s)
+        self.sinks: list[Callable[[FrameOutput], None]] = []
+        self._recent: deque[FramePacket] = deque()
+        self._kf_features: FeatureFrame | None = None
+        self._kf_t: int = 0
+        self.n_keyframes = 0
+
+    # -------------------------------------------------------------- helpers
+    def _window_imu(self, seconds: float):
+        segs = [p.imu for p in self._recent]
+        imu = concat(segs)
+        if len(imu) == 0:
+            return imu, 0.0
+        return imu, (imu.t_ns[-1] - imu.t_ns[0]) * 1e-9
+
+    def _flow_px(self, a: FeatureFrame | None, b: FeatureFrame | None) -> tuple[float, int]:
+        """Mean displacement (px) of features common to two frames, and their count."""
+        if a is None or b is None:
+            return 0.0, 0
+        common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+        if common.size == 0:
+            return 0.0, 0
+        d = np.linalg.norm(a.uv[ia] - b.uv[ib], axis=1) * self.cam.intrinsics[0]
+        return float(d.mean()), int(common.size)
+
+    def _still(self) -> bool:
+        ic = self.cfg.backend.init
+        imu, span = self._window_imu(ic.static_window_s)
+        if span < 0.8 * ic.static_window_s:
+            return False
+        if not imu_stillness(imu, ic).still:
+            return False
+        first, last = self._recent[0].features, self._recent[-1].features
+        flow, n = self._flow_px(first, last)
+        return n == 0 or flow < ic.max_still_flow_px
+
+    # ------------------------------------------------------------ main loop
+    def process(self, pkt: FramePacket) -> FrameOutput | None:
+        """Consume one packet; returns the frame's online estimate once initialized."""
+        t0 = time.perf_counter()
+        ic = self.cfg.backend.init
+        self._recent.append(pkt)
+        while len(self._recent) > 1 and (pkt.t_ns - self._recent[0].t_ns) * 1e-9 > ic.static_window_s:
+            self._recent.popleft()
+        if not self.est.initialized:
+            if not self._try_initialize(pkt):
+                return None
+            return self._emit(pkt, True, True, t0, kf=True)
+        self.est.add_imu(pkt.imu)
+        still = self._still()
+        if self._is_keyframe(pkt):
+            res = self.est.add_keyframe(pkt.t_ns, self._features(pkt), still)
+            self._kf_features, self._kf_t = pkt.features, pkt.t_ns
+            self.n_keyframes += 1
+            return self._emit(pkt, True, still, t0, kf=True, recovered=res.recovered)
+        return self._emit(pkt, False, still, t0, kf=False)
+
+    def _features(self, pkt: FramePacket) -> FeatureFrame:
+        if pkt.features is not None:
+            return pkt.features
+        return FeatureFrame(pkt.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
+                            np.zeros(0))
+
+    def _try_initialize(self, pkt: FramePacket) -> bool:
+        ic = self.cfg.backend.init
+        imu, span = self._window_imu(ic.static_window_s)
+        if span < ic.static_window_s - 1e-3 or not self._still():
+            return False
+        state = static_init(imu, pkt.t_ns)
+        self.est.initialize(state)
+        self.est.lm.observe(0, self._features(pkt))
+        self._kf_features, self._kf_t = pkt.features, pkt.t_ns
+        self.n_keyframes = 1
+        log.info("static initialization at t=%d: gyro bias %s", pkt.t_ns,
+                 np.round(state.bias.gyroscope(), 4))
+        return True
+
+    def _is_keyframe(self, pkt: FramePacket) -> bool:
+        kc = self.cfg.backend.keyframe
+        dt = (pkt.t_ns - self._kf_t) * 1e-9
+        if dt < kc.min_interval_s:
+            return False
+        if dt >= kc.max_interval_s:
+            return True
+        flow, n = self._flow_px(self._kf_features, pkt.features)
+        return flow >= kc.min_parallax_px or n < kc.min_tracked
+
+    def _emit(self, pkt: FramePacket, is_kf: bool, still: bool, t0: float, kf: bool,
+              recovered: bool = False) -> FrameOutput:
+        if is_kf:
+            T, v, b = self.est.latest()
+            pts = self.est.landmarks_w()
+        else:
+            nav = self.est.predict()
+            T, v = nav.pose(), nav.velocity()
+            b, pts = self.est.latest()[2], None
+        out = FrameOutput(pkt.index, pkt.t_ns, T, np.asarray(v), b, kf, still,
+                          time.perf_counter() - t0,
+                          0 if pkt.features is None else len(pkt.features.ids),
+                          self.est.lm.n_active(), self.est.td(), self.est.extrinsic(), pts,
+                          pkt.features, pkt)
+        for sink in self.sinks:
+            sink(out)
+        return out
