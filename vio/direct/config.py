@@ -1,0 +1,134 @@
+"""Frozen configuration of the direct (photometric) components.
+
+Each component takes its own dataclass; ``DirectConfig`` groups them for one YAML
+section, loaded strictly with ``vio.config.load(DirectConfig, path, "direct")``.
+Units: pixels for image distances, intensity units (0-255) for photometric ones,
+1/m for inverse depths.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class SelectConfig:
+    """DSO-style point selection.
+
+    ``n_points`` target count per image; ``block`` size (px) of the blocks whose
+    gradient-magnitude median (+ ``grad_offset``) sets the adaptive threshold;
+    ``levels`` number of cell scales (cell, 2 cell, 4 cell), each lowering the
+    threshold by ``level_factor``; ``border`` pixels excluded at the image edge.
+    """
+
+    n_points: int = 400
+    block: int = 32
+    grad_offset: float = 7.0
+    levels: int = 3
+    level_factor: float = 0.75
+    border: int = 8
+
+    def __post_init__(self) -> None:
+        if self.n_points < 1 or self.block < 4 or not 1 <= self.levels <= 4 or self.border < 3:
+            raise ValueError("SelectConfig: need n_points >= 1, block >= 4, 1 <= levels <= 4, border >= 3")
+
+
+@dataclass(frozen=True)
+class EpipolarConfig:
+    """Epipolar line search (seed eq. 4.1, 4.2).
+
+    ``idepth_min``/``idepth_max`` (1/m) bound the search; ``step_px`` sampling step
+    along the line; ``max_steps`` cap on samples per point; ``gn_iters`` sub-pixel
+    Gauss-Newton iterations along the line; ``min_quality`` minimum ratio of the
+    second-best to the best SSD (outside +-2 px of the best); ``max_energy`` maximum
+    best SSD per pattern pixel (intensity^2); ``sigma_I`` image noise std; ``zero_mean``
+    subtracts each patch's mean before the SSD (robust to a gain/offset between cameras).
+    """
+
+    idepth_min: float = 0.05
+    idepth_max: float = 3.0
+    step_px: float = 1.0
+    max_steps: int = 256
+    gn_iters: int = 3
+    min_quality: float = 1.5
+    max_energy: float = 100.0
+    sigma_I: float = 4.0
+    zero_mean: bool = True
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.idepth_min < self.idepth_max) or self.step_px <= 0 or self.max_steps < 3:
+            raise ValueError("EpipolarConfig: need 0 <= idepth_min < idepth_max, step_px > 0, max_steps >= 3")
+
+
+@dataclass(frozen=True)
+class LMConfig:
+    """Levenberg-Marquardt with Nielsen damping (seed 003).
+
+    ``tau`` initial damping mu = tau * max diag(J^T W J) (``damping="identity"``) or
+    mu = tau with Marquardt's diag(J^T W J) scaling (``"diagonal"``). Stops: ``eps1`` on
+    ||gradient||_inf, ``eps2`` on the relative step, ``eps3`` on ||r||, ``eps4`` on the
+    relative decrease of ||r||; ``max_iters`` outer iterations (each ends in an accepted
+    step or a stop); ``max_rejects`` consecutive rejected trial steps before giving up;
+    ``huber_k`` robust threshold on the residuals (None: least squares).
+    """
+
+    tau: float = 1e-3
+    eps1: float = 1e-10
+    eps2: float = 1e-8
+    eps3: float = 1e-12
+    eps4: float = 1e-8
+    max_iters: int = 100
+    max_rejects: int = 6
+    damping: Literal["identity", "diagonal"] = "identity"
+    huber_k: float | None = None
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """TrackFrame (seed Algorithm 3): coarse-to-fine direct alignment to a keyframe.
+
+    ``levels`` pyramid levels; ``iters`` max LM iterations per level, coarsest first
+    (one entry per level); ``sigma_I``, ``grad_c``: photometric weights
+    (factors.photometric); ``huber_k`` on the whitened residual; ``oob_residual``
+    whitened residual charged to a pattern pixel that leaves the image (so leaving is
+    never rewarded); ``min_valid_fraction`` of residuals inside at level 0 for ``ok``;
+    ``max_rmse`` (intensity units) for ``ok``; ``use_idepth_var`` includes the seed's
+    (dr/drho)^2 V term. ``lm_*`` set the per-level ``LMConfig`` (Marquardt diagonal
+    damping by default: pose and the intensity offset b have very different scales).
+    """
+
+    levels: int = 4
+    iters: tuple[int, ...] = (20, 15, 10, 8)
+    sigma_I: float = 4.0
+    grad_c: float = 50.0
+    huber_k: float = 1.345
+    oob_residual: float = 2.0
+    min_valid_fraction: float = 0.3
+    max_rmse: float = 25.0
+    use_idepth_var: bool = True
+    lm_tau: float = 1e-4
+    lm_eps2: float = 1e-6
+    lm_eps4: float = 1e-5
+    lm_max_rejects: int = 4
+    lm_damping: Literal["identity", "diagonal"] = "diagonal"
+
+    def __post_init__(self) -> None:
+        if self.levels < 1 or len(self.iters) != self.levels:
+            raise ValueError(f"TrackConfig: iters needs one entry per level ({self.levels}), "
+                             f"got {len(self.iters)}")
+
+    def lm(self, max_iters: int) -> LMConfig:
+        """The LM configuration of one level."""
+        return LMConfig(tau=self.lm_tau, eps2=self.lm_eps2, eps4=self.lm_eps4,
+                        max_iters=max_iters, max_rejects=self.lm_max_rejects,
+                        damping=self.lm_damping, huber_k=self.huber_k)
+
+
+@dataclass(frozen=True)
+class DirectConfig:
+    """All direct-method parameters (YAML section ``direct``)."""
+
+    select: SelectConfig = field(default_factory=SelectConfig)
+    epipolar: EpipolarConfig = field(default_factory=EpipolarConfig)
+    track: TrackConfig = field(default_factory=TrackConfig)

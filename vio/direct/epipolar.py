@@ -1,0 +1,223 @@
+"""Inverse depth of host pixels by epipolar line search in a second image (seed eq. 4.1, 4.2).
+
+For a host pixel with bearing f = K0^-1 [u, v, 1], the target point at inverse depth
+rho is q(rho) = R f + rho t (T_c1_c0 = [R | t], scaled form), and its pixels between
+``idepth_min`` and ``idepth_max`` form a segment of the epipolar line. The segment is
+sampled every ``step_px`` pixels; the cost of a sample is the SSD over DSO's 8-pixel
+pattern (seed eq. 4.1; the pattern offsets are mapped by the 2x2 block of
+K1 R K0^-1 as in DSO). The best sample is refined by Gauss-Newton on the position
+along the line, then triangulated with the seed's cross-product relation
+[p_best]x (d1 R f + t) = 0, divided by d1 so it is linear in rho = 1 / d1:
+    [p]x R f + rho [p]x t = 0   =>   rho = -(c . e) / (e . e),  c = [p]x R f, e = [p]x t
+(least squares over the three rows of the seed's system; stable for far points).
+
+Variance (DSO/LSD): the match error along the line is
+    sigma_px^2 = (0.2 + 0.2 (a + b) / a)^2 + 2 sigma_I^2 P / sum_p (g_p . l)^2,
+a, b the host-gradient energy along / across the line direction l (DSO's
+errorInPixel: large when the gradient is orthogonal to the line) and the second term
+the photometric disparity error (LSD-SLAM) from the target gradient along l. Then
+V = sigma_px^2 / |d x / d rho|^2 with d x / d rho = d pi / d q t (pixels per 1/m).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from factors.image_ops import BilinearImage, ImageSampler
+from factors.photometric import PATTERN, Pinhole, make_host_patch
+from vio.direct.config import EpipolarConfig
+
+
+@dataclass(frozen=True, eq=False)
+class EpipolarResult:
+    """Per point (N,): ``idepth`` (1/m, in the host camera), ``variance`` (1/m^2),
+    ``sigma_px`` the match error along the line (pixels) behind ``variance``,
+    ``quality`` (second-best / best SSD; inf when unique), ``energy`` best SSD per
+    pattern pixel after refinement, ``uv_match`` (N, 2) matched pixel in the target,
+    ``ok`` passed every check (interior minimum inside the image, quality, energy,
+    positive finite depth)."""
+
+    idepth: np.ndarray
+    variance: np.ndarray
+    sigma_px: np.ndarray
+    quality: np.ndarray
+    energy: np.ndarray
+    uv_match: np.ndarray
+    ok: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.idepth.shape[0])
+
+
+def _as_sampler(img: np.ndarray | ImageSampler) -> ImageSampler:
+    return img if hasattr(img, "sample") else BilinearImage(np.asarray(img, dtype=np.float64))
+
+
+def _line_geometry(f: np.ndarray, R: np.ndarray, t: np.ndarray, K1: Pinhole, cfg: EpipolarConfig):
+    """Segment start (N, 2), unit direction (N, 2), length (N,) and a validity mask."""
+    qinf = f @ R.T
+    lo = np.full(len(f), cfg.idepth_min)
+    hi = np.full(len(f), cfg.idepth_max)
+    if abs(t[2]) > 1e-12:  # keep q_z > 0 on the whole range (point in front of camera 1)
+        lim = (1e-3 - qinf[:, 2]) / t[2]
+        if t[2] < 0:
+            hi = np.minimum(hi, lim)
+        else:
+            lo = np.maximum(lo, lim)
+    ok = (hi > lo) & (qinf[:, 2] + lo * t[2] > 0)
+    lo = np.where(ok, lo, cfg.idepth_min)
+    hi = np.where(ok, hi, cfg.idepth_max)
+    q0 = qinf + lo[:, None] * t
+    q1 = qinf + hi[:, None] * t
+    q0[:, 2] = np.where(ok, q0[:, 2], 1.0)
+    q1[:, 2] = np.where(ok, q1[:, 2], 1.0)
+    x0, x1 = K1.project(q0), K1.project(q1)
+    d = x1 - x0
+    length = np.linalg.norm(d, axis=1)
+    ok &= length > 1e-6
+    return x0, d / np.maximum(length, 1e-12)[:, None], length, ok
+
+
+def _patch_cost(target: ImageSampler, centers: np.ndarray, offs: np.ndarray, ref: np.ndarray,
+                zero_mean: bool):
+    """SSD over the pattern at ``centers`` (..., 2); ref (N, P) broadcast over the sample axis."""
+    pix = centers[..., None, :] + offs
+    I, gx, gy, valid = target.sample(pix[..., 0], pix[..., 1])
+    diff = I - ref
+    if zero_mean:
+        diff = diff - diff.mean(-1, keepdims=True)
+    return (diff ** 2).sum(-1), valid.all(-1), diff, gx, gy
+
+
+def _discrete_search(target, x0, l, length, ok, offs, ref, cfg, chunk: int = 64):
+    """Best sample position s (N,), its SSD and quality (second best beyond +-2 px / best)."""
+    n = len(x0)
+    S = int(min(cfg.max_steps, np.ceil(length[ok].max() / cfg.step_px) + 1)) if ok.any() else 1
+    s = np.arange(S) * cfg.step_px
+    s_best, best, quality = np.zeros(n), np.full(n, np.inf), np.zeros(n)
+    for a in range(0, n, chunk):
+        sl = slice(a, min(n, a + chunk))
+        centers = x0[sl, None, :] + s[None, :, None] * l[sl, None, :]
+        e, valid, _, _, _ = _patch_cost(target, centers, offs, ref[sl, None, :], cfg.zero_mean)
+        valid &= (s[None, :] <= length[sl, None] + 1e-9) & ok[sl, None]
+        e = np.where(valid, e, np.inf)
+        k = np.argmin(e, axis=1)
+        b = e[np.arange(len(k)), k]
+        # an interior minimum only: a best sample at a clipped end (image border or the
+        # idepth range) means the true match may lie outside the searched segment
+        rows = np.arange(len(k))
+        inner = (k > 0) & (k < S - 1)
+        inner &= np.isfinite(e[rows, np.maximum(k - 1, 0)]) & np.isfinite(e[rows, np.minimum(k + 1, S - 1)])
+        b = np.where(inner, b, np.inf)
+        far = np.abs(s[None, :] - s[k][:, None]) > 2.0
+        second = np.where(far, e, np.inf).min(axis=1)
+        s_best[sl], best[sl] = s[k], b
+        quality[sl] = np.where(np.isfinite(b), second / np.where(np.isfinite(b), np.maximum(b, 1e-9), 1.0), 0.0)
+    return s_best, best, quality
+
+
+def _refine(target, x0, l, s, offs, ref, cfg):
+    """Gauss-Newton on the position s along the line (N,), each step clamped to half a step."""
+    best_e, _, _, _, _ = _patch_cost(target, x0 + s[:, None] * l, offs, ref, cfg.zero_mean)
+    for _ in range(cfg.gn_iters):
+        e, valid, diff, gx, gy = _patch_cost(target, x0 + s[:, None] * l, offs, ref, cfg.zero_mean)
+        Jl = gx * l[:, None, 0] + gy * l[:, None, 1]
+        if cfg.zero_mean:
+            Jl = Jl - Jl.mean(-1, keepdims=True)
+        H = (Jl * Jl).sum(-1)
+        ds = np.clip(-(Jl * diff).sum(-1) / np.maximum(H, 1e-9), -0.5 * cfg.step_px, 0.5 * cfg.step_px)
+        s_new = s + ds
+        e_new, v_new, _, _, _ = _patch_cost(target, x0 + s_new[:, None] * l, offs, ref, cfg.zero_mean)
+        better = v_new & (e_new < best_e)
+        s = np.where(better, s_new, s)
+        best_e = np.where(better, e_new, best_e)
+    return s, best_e
+
+
+def _triangulate(f: np.ndarray, uv1: np.ndarray, R: np.ndarray, t: np.ndarray, K1: Pinhole):
+    """rho from [p]x (R f + rho t) = 0 in least squares (module docstring)."""
+    p = K1.unproject(uv1)
+    c = np.cross(p, f @ R.T)
+    e = np.cross(p, np.broadcast_to(t, p.shape))
+    ee = (e * e).sum(1)
+    return -(c * e).sum(1) / np.maximum(ee, 1e-300), ee > 1e-18
+
+
+def _variance(host_g: np.ndarray, tgt_g: np.ndarray, l: np.ndarray, rho: np.ndarray, f, R, t,
+              K1: Pinhole, sigma_I: float) -> tuple[np.ndarray, np.ndarray]:
+    """(V, sigma_px): V = sigma_px^2 / |dx/drho|^2 (module docstring); host_g, tgt_g (N, P, 2)."""
+    along = (host_g * l[:, None, :]).sum(-1)
+    across = host_g[..., 0] * l[:, None, 1] - host_g[..., 1] * l[:, None, 0]
+    a, b = (along ** 2).sum(-1), (across ** 2).sum(-1)
+    geo = 0.2 + 0.2 * (a + b) / np.maximum(a, 1e-9)
+    gl = (tgt_g * l[:, None, :]).sum(-1)
+    photo2 = 2 * sigma_I ** 2 * gl.shape[1] / np.maximum((gl ** 2).sum(-1), 1e-9)
+    q = f @ R.T + rho[:, None] * t
+    z = np.where(np.abs(q[:, 2]) > 1e-9, q[:, 2], 1e-9)
+    dx = K1.fx * (t[0] * z - q[:, 0] * t[2]) / z ** 2   # seed: (t1 z' - x' t3) / z'^2
+    dy = K1.fy * (t[1] * z - q[:, 1] * t[2]) / z ** 2
+    s2 = geo ** 2 + photo2
+    return s2 / np.maximum(dx * dx + dy * dy, 1e-18), np.sqrt(s2)
+
+
+def epipolar_search(left: np.ndarray | ImageSampler, right: np.ndarray | ImageSampler,
+                    uv: np.ndarray, K0: Pinhole, K1: Pinhole, T_c1_c0: gtsam.Pose3,
+                    config: EpipolarConfig = EpipolarConfig(),
+                    ab_right: tuple[float, float] = (0.0, 0.0)) -> EpipolarResult:
+    """Search the inverse depth of the host pixels ``uv`` (N, 2) of image ``left`` in ``right``.
+
+    Images are undistorted pinhole images ((H, W) arrays or ``ImageSampler``s); they need
+    not be rectified. ``T_c1_c0`` maps host-camera points into the target camera.
+    ``ab_right`` = [a, b]: the target's brightness is e^a I + b (ignored with zero_mean
+    except for the gain).
+    """
+    cfg = config
+    L, Rimg = _as_sampler(left), _as_sampler(right)
+    uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
+    R, t = T_c1_c0.rotation().matrix(), T_c1_c0.translation()
+    host = make_host_patch(L, uv, K0)
+    f = K0.unproject(uv)
+    ref = np.exp(ab_right[0]) * host.intensity + ab_right[1]
+    offs = PATTERN @ (K1.K @ R @ np.linalg.inv(K0.K))[:2, :2].T
+    x0, l, length, ok = _line_geometry(f, R, t, K1, cfg)
+    ok &= host.valid.all(1)
+    s_int, best, quality = _discrete_search(Rimg, x0, l, length, ok, offs, ref, cfg)
+    ok &= np.isfinite(best)
+    s_best, e_ref = _refine(Rimg, x0, l, np.where(ok, s_int, 0.0), offs[None], ref, cfg)
+    uv1 = x0 + s_best[:, None] * l
+    rho, tri_ok = _triangulate(f, uv1, R, t, K1)
+    P = PATTERN.shape[0]
+    energy = e_ref / P
+    _, tgx, tgy, _ = Rimg.sample(uv1[:, None, 0] + offs[:, 0], uv1[:, None, 1] + offs[:, 1])
+    _, hgx, hgy, _ = L.sample(uv[:, None, 0] + PATTERN[:, 0], uv[:, None, 1] + PATTERN[:, 1])
+    V, sigma_px = _variance(np.stack([hgx, hgy], -1), np.stack([tgx, tgy], -1), l, rho, f, R, t, K1, cfg.sigma_I)
+    ok &= tri_ok & (quality >= cfg.min_quality) & (energy <= cfg.max_energy)
+    ok &= np.isfinite(rho) & (rho > 0) & np.isfinite(V)
+    return EpipolarResult(rho, V, sigma_px, quality, energy, uv1, ok)
+
+
+def undistort_pinhole(image: np.ndarray, K: np.ndarray, distortion: tuple[float, ...],
+                      model: str = "radial-tangential") -> np.ndarray:
+    """Undistort a (H, W) image to the pinhole camera with the same ``K`` (float64 output).
+
+    ``model``: ``"radial-tangential"`` (k1, k2, p1, p2), ``"equidistant"`` (k1..k4) or
+    ``"none"``. Pixels mapped from outside the source are 0.
+    """
+    import cv2  # the pipeline layer may use cv2; factors/ may not
+
+    img = np.asarray(image)
+    if model == "none" or not any(distortion):
+        return img.astype(np.float64)
+    h, w = img.shape[:2]
+    K = np.asarray(K, dtype=np.float64)
+    d = np.asarray(distortion, dtype=np.float64)
+    if model == "equidistant":
+        m1, m2 = cv2.fisheye.initUndistortRectifyMap(K, d, np.eye(3), K, (w, h), cv2.CV_32FC1)
+    elif model == "radial-tangential":
+        m1, m2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
+    else:
+        raise ValueError(f"undistort_pinhole: unknown distortion model {model!r}")
+    return cv2.remap(img.astype(np.float32), m1, m2, cv2.INTER_LINEAR).astype(np.float64)

@@ -1,0 +1,146 @@
+"""TrackFrame (seed Algorithm 3): direct alignment of a new frame to the last keyframe.
+
+Estimates T_kf_new (pose of the new camera in the keyframe camera, ``gtsam.Pose3``,
+retract T Exp(xi), xi = [omega, v]) and the new frame's affine brightness [a, b]
+from keyframe points with known inverse depths, coarse-to-fine over an image pyramid.
+Each level runs Levenberg-Marquardt with Nielsen damping (``vio.direct.lm``; the
+seed's lambda halving/doubling becomes Nielsen's mu update) on the 8-DoF state, with
+the photometric residual of ``factors.photometric`` (host = keyframe with T = I and
+T_b_c = I, target = new frame), weights W = c^2 / (c^2 + |grad|^2) /
+(2 sigma_I^2 + (dr/drho)^2 V) (seed) and Huber on the whitened residual. A pattern
+pixel that falls outside the new image is charged a constant whitened residual
+``oob_residual`` with zero Jacobian, so moving points out of view never lowers the cost.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
+from factors.photometric import (HostPatch, Pinhole, PhotometricParams, make_host_patch,
+                                 sqrt_weights, temporal_eval)
+from vio.direct.config import TrackConfig
+from vio.direct.lm import levenberg_marquardt
+
+_IDENTITY = gtsam.Pose3()
+
+
+@dataclass(frozen=True, eq=False)
+class TrackingReference:
+    """Keyframe data for tracking, per pyramid level (index 0 = full resolution).
+
+    ``K`` intrinsics, ``patches`` host patches of the N points, ``idepth`` (N,) 1/m and
+    ``idepth_var`` (N,) 1/m^2 in the keyframe camera, ``ab`` keyframe affine [a, b]."""
+
+    K: tuple[Pinhole, ...]
+    patches: tuple[HostPatch, ...]
+    idepth: np.ndarray
+    idepth_var: np.ndarray
+    ab: np.ndarray
+
+    @property
+    def levels(self) -> int:
+        return len(self.K)
+
+
+@dataclass(frozen=True)
+class LevelStats:
+    """One pyramid level of a TrackFrame call; ``rmse`` in intensity units over valid residuals."""
+
+    level: int
+    iterations: int
+    evaluations: int
+    initial_cost: float
+    cost: float
+    rmse: float
+    valid_fraction: float
+    stop_reason: str
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """``T_kf_new`` pose of the new camera in the keyframe camera; ``a``, ``b`` the new
+    frame's affine brightness; ``rmse`` level-0 intensity RMSE; ``iterations`` summed
+    over levels; ``ok`` enough points stayed in view and the RMSE is plausible."""
+
+    T_kf_new: gtsam.Pose3
+    a: float
+    b: float
+    rmse: float
+    iterations: int
+    ok: bool
+    levels: tuple[LevelStats, ...]
+
+
+def make_reference(image: np.ndarray, uv: np.ndarray, idepth: np.ndarray, K: Pinhole,
+                   idepth_var: np.ndarray | None = None, ab: tuple[float, float] = (0.0, 0.0),
+                   config: TrackConfig = TrackConfig()) -> TrackingReference:
+    """Sample the keyframe ``image`` (H, W) around pixels ``uv`` (N, 2) on every level."""
+    uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
+    idepth = np.asarray(idepth, dtype=np.float64).reshape(-1)
+    if uv.shape[0] != idepth.shape[0] or uv.shape[1] != 2:
+        raise ValueError(f"make_reference: uv {uv.shape} and idepth {idepth.shape} disagree")
+    var = np.zeros_like(idepth) if idepth_var is None else np.asarray(idepth_var, float).reshape(-1)
+    Ks, patches = [], []
+    for lev, img in enumerate(pyramid(image, config.levels)):
+        Kl = Pinhole(*scale_intrinsics(K.fx, K.fy, K.cx, K.cy, lev))
+        Ks.append(Kl)
+        patches.append(make_host_patch(BilinearImage(img), scale_pixels(uv, lev), Kl))
+    return TrackingReference(tuple(Ks), tuple(patches), idepth, var, np.asarray(ab, float))
+
+
+def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg: TrackConfig):
+    """Residual function x = (T_kf_new, ab) -> (whitened r, J (m, 8)) of one level."""
+    params = PhotometricParams(sigma_I=cfg.sigma_I, grad_c=cfg.grad_c, huber_k=None)
+    patch, K = ref.patches[lev], ref.K[lev]
+    var = ref.idepth_var if cfg.use_idepth_var else 0.0
+
+    def fun(x):
+        T, ab = x
+        ev = temporal_eval(_IDENTITY, T, ref.idepth, ref.ab, ab, patch, target, K, _IDENTITY)
+        sw = sqrt_weights(ev, patch, params, var)
+        r = np.where(ev.valid, sw * ev.r, cfg.oob_residual).reshape(-1)
+        J = np.concatenate([ev.J["pose_j"], ev.J["ab_j"]], -1) * sw[..., None]
+        return r, J.reshape(r.shape[0], 8)
+
+    def rmse(x):
+        T, ab = x
+        ev = temporal_eval(_IDENTITY, T, ref.idepth, ref.ab, ab, patch, target, K, _IDENTITY)
+        n = max(int(ev.valid.sum()), 1)
+        return float(np.sqrt((ev.r[ev.valid] ** 2).sum() / n)), float(ev.valid.mean())
+
+    return fun, rmse
+
+
+def _retract(x, h):
+    return x[0].retract(h[:6]), x[1] + h[6:]
+
+
+def track_frame(ref: TrackingReference, image: np.ndarray,
+                T_kf_new_init: gtsam.Pose3 = _IDENTITY, ab_init: tuple[float, float] | None = None,
+                config: TrackConfig = TrackConfig()) -> TrackResult:
+    """Align ``image`` (H, W) to the keyframe ``ref``, starting from ``T_kf_new_init`` and
+    ``ab_init`` (default: the keyframe's affine)."""
+    cfg = config
+    if ref.levels < cfg.levels:
+        raise ValueError(f"reference has {ref.levels} levels, config asks for {cfg.levels}")
+    ab0 = ref.ab if ab_init is None else np.asarray(ab_init, float)
+    x = (T_kf_new_init, ab0.astype(float).copy())
+    pyr = pyramid(image, cfg.levels)
+    stats, total = [], 0
+    for lev in reversed(range(cfg.levels)):
+        fun, rmse = _level_problem(ref, lev, BilinearImage(pyr[lev]), cfg)
+        max_it = cfg.iters[cfg.levels - 1 - lev]
+        res = levenberg_marquardt(fun, x, cfg.lm(max_it), retract=_retract)
+        x = res.x
+        total += res.iterations
+        e, frac = rmse(x)
+        stats.append(LevelStats(lev, res.iterations, res.evaluations, res.initial_cost, res.cost,
+                                e, frac, res.stop_reason))
+    final = stats[-1]
+    ok = bool(final.valid_fraction >= cfg.min_valid_fraction and final.rmse <= cfg.max_rmse
+              and np.all(np.isfinite(x[1])))
+    return TrackResult(x[0], float(x[1][0]), float(x[1][1]), final.rmse, total, ok, tuple(stats))
