@@ -17,6 +17,7 @@ import numpy as np
 
 from vio.backend.config import BackendConfig
 from vio.backend.estimator import Estimator
+from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
@@ -61,7 +62,9 @@ class Pipeline:
     def __init__(self, imu_calib: ImuCalib, cam: CameraCalib, cfg: PipelineConfig) -> None:
         self.cfg = cfg
         self.cam = cam
+        self.imu_calib = imu_calib
         self.est = Estimator(imu_calib, cam, cfg.backend, cfg.td_s)
+        self._init_buf: list[FramePacket] = []
         self.sinks: list[Callable[[FrameOutput], None]] = []
         self._recent: deque[FramePacket] = deque()
         self._kf_features: FeatureFrame | None = None
@@ -106,9 +109,10 @@ class Pipeline:
         while len(self._recent) > 1 and (pkt.t_ns - self._recent[0].t_ns) * 1e-9 > ic.static_window_s:
             self._recent.popleft()
         if not self.est.initialized:
-            if not self._try_initialize(pkt):
-                return None
-            return self._emit(pkt, True, True, t0, kf=True)
+            return self._initialize(pkt, t0)
+        return self._step(pkt, t0)
+
+    def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self.est.add_imu(pkt.imu)
         still = self._still()
         if self._is_keyframe(pkt):
@@ -124,19 +128,39 @@ class Pipeline:
         return FeatureFrame(pkt.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
                             np.zeros(0))
 
-    def _try_initialize(self, pkt: FramePacket) -> bool:
+    def _initialize(self, pkt: FramePacket, t0: float) -> FrameOutput | None:
+        """Static initialization when still, else dynamic alignment over a buffered
+        window, which is then replayed through the estimator."""
         ic = self.cfg.backend.init
+        self._init_buf.append(pkt)
         imu, span = self._window_imu(ic.static_window_s)
-        if span < ic.static_window_s - 1e-3 or not self._still():
-            return False
-        state = static_init(imu, pkt.t_ns)
+        if span >= ic.static_window_s - 1e-3 and self._still():
+            self._start(static_init(imu, pkt.t_ns), pkt)
+            self._init_buf = []
+            return self._emit(pkt, True, True, t0, kf=True)
+        buf = self._init_buf
+        if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic_window_s:
+            return None
+        res = align(init_window(buf, ic.dynamic_step_s), self.cam, self.imu_calib, self.cfg.backend)
+        if not res.ok:
+            log.info("dynamic initialization not yet possible: %s", res.reason)
+            keep = buf[-1].t_ns - int(ic.dynamic_window_s * 0.7e9)
+            self._init_buf = [p for p in buf if p.t_ns >= keep]
+            return None
+        self._init_buf = []
+        self._start(res.state, buf[0])
+        out = None
+        for p in buf[1:]:
+            out = self._step(p, t0)
+        return out
+
+    def _start(self, state, pkt: FramePacket) -> None:
         self.est.initialize(state)
         self.est.lm.observe(0, self._features(pkt))
         self._kf_features, self._kf_t = pkt.features, pkt.t_ns
         self.n_keyframes = 1
-        log.info("static initialization at t=%d: gyro bias %s", pkt.t_ns,
+        log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,
                  np.round(state.bias.gyroscope(), 4))
-        return True
 
     def _is_keyframe(self, pkt: FramePacket) -> bool:
         kc = self.cfg.backend.keyframe

@@ -39,3 +39,48 @@ def write_tum(path: str | Path, stamps_ns: list[int] | np.ndarray, poses: list[g
         f.write("# timestamp tx ty tz qx qy qz qw\n")
         for t, T in zip(stamps_ns, poses):
             f.write(tum_row(int(t), T) + "\n")
+
+
+def gyro_time_offset_ns(gt: GroundTruth, imu_t_ns: np.ndarray, gyro: np.ndarray,
+                        search_ms: float = 20.0, step_ms: float = 0.25) -> int:
+    """Clock offset of a ground truth w.r.t. the IMU, from angular velocity (ns).
+
+    Returns ``o`` such that the GT sample stamped ``t`` was taken at IMU time
+    ``t + o``: the body angular velocity differentiated from the GT quaternions
+    is compared with the gyro (mean removed, absorbing the bias) over a grid of
+    shifts, and the best shift is refined with a parabola. EuRoC's ground truth
+    is off by about -2 ms on V1_02, V2_01 and MH_04 and +2.5 ms on V1_03.
+    """
+    q = gt.q_wxyz
+    dt = np.diff(gt.t_ns) * 1e-9
+    qc = q[:-1] * np.array([1.0, -1.0, -1.0, -1.0])
+    w0, v0 = qc[:, :1], qc[:, 1:]
+    w1, v1 = q[1:, :1], q[1:, 1:]
+    rel_w = w0 * w1 - np.sum(v0 * v1, axis=1, keepdims=True)
+    rel_v = w0 * v1 + w1 * v0 + np.cross(v0, v1)
+    rel_v *= np.sign(rel_w + 1e-300)
+    omega = 2.0 * rel_v / dt[:, None]
+    t_mid = gt.t_ns[:-1] + (np.diff(gt.t_ns) // 2)
+    keep = (dt > 0) & (dt < 0.05) & (t_mid > imu_t_ns[0] + 1e8) & (t_mid < imu_t_ns[-1] - 1e8)
+    t_mid, omega = t_mid[keep], omega[keep]
+    if t_mid.size < 100:
+        raise ValueError("too little overlap between ground truth and IMU to align clocks")
+    sel = np.linspace(0, t_mid.size - 1, min(t_mid.size, 20000)).astype(int)
+    t_mid, omega = t_mid[sel], omega[sel]
+    tf = (imu_t_ns - imu_t_ns[0]).astype(np.float64)
+    shifts = np.arange(-search_ms, search_ms + 1e-9, step_ms)
+    cost = []
+    for s in shifts:
+        x = (t_mid - imu_t_ns[0]).astype(np.float64) + s * 1e6
+        g = np.stack([np.interp(x, tf, gyro[:, k]) for k in range(3)], axis=1)
+        e = g - omega
+        e -= e.mean(0)
+        cost.append(float((e ** 2).mean()))
+    i = int(np.argmin(cost))
+    best = shifts[i]
+    if 0 < i < len(cost) - 1:
+        c0, c1, c2 = cost[i - 1], cost[i], cost[i + 1]
+        den = c0 - 2 * c1 + c2
+        if den > 0:
+            best += 0.5 * (c0 - c2) / den * step_ms
+    return int(round(best * 1e6))

@@ -33,6 +33,7 @@ class InitConfig:
     max_accel_std: float = 0.6
     max_still_flow_px: float = 1.0
     dynamic_window_s: float = 1.5
+    dynamic_step_s: float = 0.1
     prior_pos_sigma: float = 1e-3
     prior_yaw_sigma: float = 1e-3
     prior_rp_sigma: float = 0.02
