@@ -1,0 +1,342 @@
+"""Inverse-depth projection factor (seed 004, ``projection_factor``) in GTSAM conventions.
+
+Variables: body poses ``T_w_bi`` (anchor) and ``T_w_bj`` (``gtsam.Pose3``), camera
+extrinsic ``T_b_c`` (``gtsam.Pose3``, camera in body) and the inverse depth ``lambda``
+(1-vector, 1/m) of the landmark along its anchor bearing: ``P_ci = [u_i, v_i, 1] / lambda``
+(normalized-plane coordinates ``uv``, unitless). Transfer (seed 004, first equation)::
+
+    P_cj = T_b_c^-1 * T_w_bj^-1 * T_w_bi * T_b_c * P_ci
+
+Internally the homogeneous point ``Q = lambda * P_cj = M m_i + lambda h`` with
+``M = R_c^T R_j^T R_i R_c`` and ``h = R_c^T (R_j^T (R_i t_c + t_i - t_j) - t_c)`` is used: it
+projects identically for ``lambda > 0`` and stays finite for far points (``lambda -> 0``).
+
+Residual models (2-vectors, normalized-plane / radian units):
+
+* ``"pinhole"``: ``r = Q_xy / Q_z - uv_j`` (seed 004, non-unit-sphere section).
+* ``"sphere"``: ``r = B (Q/|Q| - m_j/|m_j|)``, ``m_j = [u_j, v_j, 1]`` and ``B`` (2x3) an
+  orthonormal tangent basis of the *measured* bearing (seed 004, unit-sphere section).
+  ``B`` is a constant of the measurement (see :func:`tangent_basis`).
+
+Jacobians are exact for GTSAM's retraction ``T * Exp([omega, v])``; the numeric test in
+``tests/test_jacobians.py`` is the judge. VINS perturbs translations in the world frame,
+so its blocks differ and are not used.
+
+Cheirality: a pinhole residual whose point is not in front of camera j
+(``Q_z <= MIN_COS * |Q|``, i.e. more than ~89.9 deg off axis or behind) and a sphere
+residual with ``|Q| <= MIN_NORM`` return the constant residual
+``[BEHIND_CAMERA_RESIDUAL] * 2`` with all-zero Jacobians (like GTSAM's
+``GenericProjectionFactor`` with ``throwCheirality=false``): finite, it penalizes LM steps
+that move the point behind the camera but never pulls on the linear system. The sphere
+residual of a point behind camera j is smooth and stays bounded (``|r| <= 2``), so it is
+evaluated normally. ``lambda < 0`` (point behind the anchor) is not rejected here; the
+backend must treat it as a failed landmark. A NaN state gives a NaN residual, which the
+adapter contains (factor zeroed, counted in ``FactorHealth``).
+
+Every entry point (:func:`projection_residual`, :func:`projection_factor`, the td factor
+and the per-landmark factor) runs the same Numba-compiled batch kernel,
+:func:`project_batch`, over n observations of one landmark (n = 1 for single factors).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import gtsam
+import numpy as np
+
+from factors.adapter import FactorHealth, custom_factor
+
+MODELS = ("pinhole", "sphere")
+BEHIND_CAMERA_RESIDUAL = 2.0
+"""Residual component returned for a point not in front of camera j (normalized units)."""
+MIN_COS = 1e-3
+"""Pinhole cheirality threshold on ``Q_z / |Q|``."""
+MIN_NORM = 1e-12
+"""Sphere degeneracy threshold on ``|Q|`` (``|Q| ~ |m_i|`` >= 1 for sane states)."""
+
+try:
+    from numba import njit as _numba_njit
+
+    def _njit(fn):  # noqa: D103 - compile once, cache on disk next to this module
+        return _numba_njit(cache=True, nogil=True)(fn)
+except ImportError:  # pragma: no cover - without numba the kernel runs as plain Python
+    def _njit(fn):  # noqa: D103
+        return fn
+
+
+def check_model(model: str) -> str:
+    """Return ``model`` if it is one of :data:`MODELS`, else raise ``ValueError``."""
+    if model not in MODELS:
+        raise ValueError(f"unknown residual model {model!r}; use one of {MODELS}")
+    return model
+
+
+def homogeneous(uv: np.ndarray) -> np.ndarray:
+    """``[u, v] -> [u, v, 1]`` for (2,) or (n, 2) normalized-plane points."""
+    uv = np.asarray(uv, dtype=float)
+    return np.concatenate([uv, np.ones(uv.shape[:-1] + (1,))], axis=-1)
+
+
+def tangent_basis(uv: np.ndarray) -> np.ndarray:
+    """Orthonormal tangent basis ``B`` (n, 2, 3) of the bearings of ``uv`` (n, 2).
+
+    Row 0 is ``[1, 0, -u] / sqrt(1 + u^2)`` (orthogonal to ``[u, v, 1]``), row 1 is
+    ``b x row0 = [-u v, 1 + u^2, -v] / (sqrt(1 + u^2) |m|)`` with ``b = m / |m|`` the unit
+    bearing. Smooth in ``uv`` everywhere (unlike VINS's
+    switch on the z axis). The td factor builds ``B`` from the raw (unshifted) observation,
+    so ``B`` never depends on a variable.
+    """
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    u, v = uv[:, 0], uv[:, 1]
+    s = np.sqrt(1.0 + u * u)
+    sn = s * np.sqrt(1.0 + u * u + v * v)
+    B = np.zeros((uv.shape[0], 2, 3))
+    B[:, 0, 0], B[:, 0, 2] = 1.0 / s, -u / s
+    B[:, 1, 0], B[:, 1, 1], B[:, 1, 2] = -u * v / sn, (1.0 + u * u) / sn, -v / sn
+    return B
+
+
+# ---------------------------------------------------------------------------------------
+# Batched kernel. Written as explicit loops over 3-vectors so that Numba compiles it (a
+# numpy-vectorized version spent ~60 us per 10-observation landmark in ~40 small numpy
+# calls; this kernel takes ~3 us). Without Numba it runs as plain Python.
+#
+# Derivation (right perturbations R -> R (I + [w]x), t -> t + R v; seed 004 transfer):
+#   q_b  = R_c m_i + lam t_c                        (lam * point in body i)
+#   q_bj = R_j^T (R_i q_b + lam (t_i - t_j))        (lam * point in body j)
+#   Q    = R_c^T (q_bj - lam t_c) = M m_i + lam h,  M = R_c^T R_j^T R_i R_c
+#   dQ/dT_i = R_c^T R_j^T R_i [-[q_b]x, lam I]      dQ/dT_j = R_c^T [[q_bj]x, -lam I]
+#   dQ/dT_c = [[Q]x - M [m_i]x, lam (M - I)]        dQ/dlam = h,  dQ/duv_i = M[:, :2]
+# then r = f(Q) with f the pinhole or sphere model, J = df/dQ * dQ/dx.
+# ---------------------------------------------------------------------------------------
+
+COL_LAM, COL_TC, COL_TI, COL_TJ = 0, 1, 7, 13
+"""Column layout of the batched Jacobian: lambda, T_b_c, T_w_bi, then one T_w_bj per row pair."""
+
+
+@_njit
+def _skew_into(v: np.ndarray, out: np.ndarray) -> None:
+    out[0, 0], out[0, 1], out[0, 2] = 0.0, -v[2], v[1]
+    out[1, 0], out[1, 1], out[1, 2] = v[2], 0.0, -v[0]
+    out[2, 0], out[2, 1], out[2, 2] = -v[1], v[0], 0.0
+
+
+@_njit
+def _model_into(Q: np.ndarray, uv: np.ndarray, B: np.ndarray, sphere: bool, r: np.ndarray,
+                dQ: np.ndarray, duv: np.ndarray) -> bool:
+    """Residual r (2,), dr/dQ (2, 3) and dr/duv_j (2, 2) of one point; False if invalid."""
+    nQ = np.sqrt(Q[0] * Q[0] + Q[1] * Q[1] + Q[2] * Q[2])
+    if not sphere:
+        if Q[2] <= MIN_COS * nQ:  # (a NaN state falls through and stays NaN)
+            return False
+        iz = 1.0 / Q[2]
+        x, y = Q[0] * iz, Q[1] * iz
+        r[0], r[1] = x - uv[0], y - uv[1]
+        dQ[0, 0], dQ[0, 1], dQ[0, 2] = iz, 0.0, -x * iz
+        dQ[1, 0], dQ[1, 1], dQ[1, 2] = 0.0, iz, -y * iz
+        duv[0, 0], duv[0, 1], duv[1, 0], duv[1, 1] = -1.0, 0.0, 0.0, -1.0
+        return True
+    if nQ <= MIN_NORM:
+        return False
+    nm = np.sqrt(uv[0] * uv[0] + uv[1] * uv[1] + 1.0)
+    b = np.array([uv[0] / nm, uv[1] / nm, 1.0 / nm])
+    for k in range(2):
+        Bq = (B[k, 0] * Q[0] + B[k, 1] * Q[1] + B[k, 2] * Q[2]) / nQ
+        Bb = B[k, 0] * b[0] + B[k, 1] * b[1] + B[k, 2] * b[2]
+        r[k] = Bq - Bb
+        for c in range(3):
+            dQ[k, c] = (B[k, c] - Bq * Q[c] / nQ) / nQ
+        for c in range(2):
+            duv[k, c] = -(B[k, c] - Bb * b[c]) / nm
+    return True
+
+
+@_njit
+def _anchor_terms(Ti: np.ndarray, Tc: np.ndarray, lam: float, uv_i: np.ndarray):
+    """Per-landmark constants: m_i, lam*P_w = R_i q_b + lam t_i, w_i = R_i t_c + t_i,
+    R_c^T t_c, A = R_i R_c, [m_i]x and G = R_i [-[q_b]x, lam I] (3, 6)."""
+    Ri, ti, Rc, tc = Ti[:3, :3], Ti[:3, 3], Tc[:3, :3], Tc[:3, 3]
+    m = np.array([uv_i[0], uv_i[1], 1.0])
+    qb, pw, wi, RcTtc = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+    A, Sm, Sq, G = np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 6))
+    for a in range(3):
+        for k in range(3):
+            qb[a] += Rc[a, k] * m[k]
+            RcTtc[a] += Rc[k, a] * tc[k]
+        qb[a] += lam * tc[a]
+    _skew_into(qb, Sq)
+    _skew_into(m, Sm)
+    for a in range(3):
+        for k in range(3):
+            pw[a] += Ri[a, k] * qb[k]
+            wi[a] += Ri[a, k] * tc[k]
+            for c in range(3):
+                A[a, c] += Ri[a, k] * Rc[k, c]
+                G[a, c] -= Ri[a, k] * Sq[k, c]
+            G[a, 3 + k] = lam * Ri[a, k]
+        pw[a] += lam * ti[a]
+        wi[a] += ti[a]
+    return pw, wi, RcTtc, A, Sm, G
+
+
+@_njit
+def _transfer_into(Rj: np.ndarray, tj: np.ndarray, Rc: np.ndarray, tc: np.ndarray, lam: float,
+                   pw: np.ndarray, wi: np.ndarray, RcTtc: np.ndarray, A: np.ndarray,
+                   Sm: np.ndarray, G: np.ndarray, Q: np.ndarray, M: np.ndarray,
+                   D: np.ndarray) -> None:
+    """Q (3,), M (3, 3) and D = dQ/d[lam, T_c, T_i, T_j] (3, 19) for one target frame."""
+    qbj, e, C, Sq = np.zeros(3), np.empty(3), np.zeros((3, 3)), np.empty((3, 3))
+    for a in range(3):
+        for k in range(3):
+            qbj[a] += Rj[k, a] * (pw[k] - lam * tj[k])
+            for c in range(3):
+                C[a, k] += Rc[c, a] * Rj[k, c]  # (R_j R_c)^T = R_c^T R_j^T
+        e[a] = wi[a] - tj[a]
+    for a in range(3):
+        Q[a] = 0.0
+        D[a, COL_LAM] = -RcTtc[a]
+        for k in range(3):
+            Q[a] += Rc[k, a] * (qbj[k] - lam * tc[k])
+            D[a, COL_LAM] += C[a, k] * e[k]
+            M[a, k] = C[a, 0] * A[0, k] + C[a, 1] * A[1, k] + C[a, 2] * A[2, k]
+        for c in range(6):
+            D[a, COL_TI + c] = C[a, 0] * G[0, c] + C[a, 1] * G[1, c] + C[a, 2] * G[2, c]
+    _skew_into(qbj, Sq)
+    for a in range(3):
+        for c in range(3):
+            D[a, COL_TJ + c] = Rc[0, a] * Sq[0, c] + Rc[1, a] * Sq[1, c] + Rc[2, a] * Sq[2, c]
+            D[a, COL_TJ + 3 + c] = -lam * Rc[c, a]
+            D[a, COL_TC + 3 + c] = lam * (M[a, c] - (1.0 if a == c else 0.0))
+    _skew_into(Q, Sq)
+    for a in range(3):
+        for c in range(3):
+            D[a, COL_TC + c] = Sq[a, c] - (M[a, 0] * Sm[0, c] + M[a, 1] * Sm[1, c]
+                                           + M[a, 2] * Sm[2, c])
+
+
+@_njit
+def _project_kernel(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
+                    uv_i: np.ndarray, uv_j: np.ndarray, basis: np.ndarray, sphere: bool,
+                    vel_i: np.ndarray, vel_j: np.ndarray, vel_col: int,
+                    r: np.ndarray, J: np.ndarray, Juvi: np.ndarray, Juvj: np.ndarray,
+                    valid: np.ndarray) -> None:
+    """Fill r (n, 2), J (2n, >= 13 + 6n; zeroed, COL_* layout), Juvi/Juvj (n, 2, 2), valid (n,).
+
+    If ``vel_col >= 0``, ``J[:, vel_col] = -(dr/duv_i vel_i + dr/duv_j vel_j)``.
+    """
+    pw, wi, RcTtc, A, Sm, G = _anchor_terms(Ti, Tc, lam, uv_i)
+    Rc, tc = Tc[:3, :3], Tc[:3, 3]
+    Q, M, D = np.empty(3), np.empty((3, 3)), np.empty((3, 19))
+    dQ, duv, ra = np.empty((2, 3)), np.empty((2, 2)), np.empty(2)
+    for o in range(Tjs.shape[0]):
+        _transfer_into(Tjs[o, :3, :3], Tjs[o, :3, 3], Rc, tc, lam, pw, wi, RcTtc, A, Sm, G,
+                       Q, M, D)
+        ok = _model_into(Q, uv_j[o], basis[o], sphere, ra, dQ, duv)
+        valid[o] = ok
+        for k in range(2):
+            row = 2 * o + k
+            if not ok:
+                r[o, k] = BEHIND_CAMERA_RESIDUAL
+                continue  # J, Juvi, Juvj stay zero
+            r[o, k] = ra[k]
+            for c in range(19):
+                s = dQ[k, 0] * D[0, c] + dQ[k, 1] * D[1, c] + dQ[k, 2] * D[2, c]
+                J[row, c if c < COL_TJ else c + 6 * o] = s
+            for c in range(2):
+                Juvi[o, k, c] = dQ[k, 0] * M[0, c] + dQ[k, 1] * M[1, c] + dQ[k, 2] * M[2, c]
+                Juvj[o, k, c] = duv[k, c]
+            if vel_col >= 0:
+                J[row, vel_col] = -(Juvi[o, k, 0] * vel_i[0] + Juvi[o, k, 1] * vel_i[1]
+                                    + duv[k, 0] * vel_j[o, 0] + duv[k, 1] * vel_j[o, 1])
+
+
+_NO_VEL_I = np.zeros(2)
+
+
+class Projected(NamedTuple):
+    """Batched residuals of n observations of one landmark and their Jacobians."""
+
+    r: np.ndarray  # (n, 2)
+    J: np.ndarray  # (2n, 13 + 6n [+ 1]), Fortran order, COL_* layout
+    uvi: np.ndarray  # (n, 2, 2) d r / d uv_i (anchor observation)
+    uvj: np.ndarray  # (n, 2, 2) d r / d uv_j (target observation)
+    valid: np.ndarray  # (n,) bool, False where the cheirality residual was returned
+
+
+def project_batch(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
+                  uv_i: np.ndarray, uv_j: np.ndarray, model: str, basis: np.ndarray,
+                  vel_i: np.ndarray | None = None, vel_j: np.ndarray | None = None) -> Projected:
+    """Residuals of n observations ``uv_j`` (n, 2) of one landmark anchored at ``uv_i`` (2,).
+
+    ``Ti`` (4, 4) = ``T_w_bi``, ``Tjs`` (n, 4, 4) = ``T_w_bj``, ``Tc`` (4, 4) = ``T_b_c`` as
+    homogeneous matrices; ``lam`` inverse depth (1/m); ``basis`` (n, 2, 3) the sphere tangent
+    bases (:func:`tangent_basis`; ignored by ``"pinhole"``). ``J`` columns: ``COL_LAM``,
+    ``COL_TC:+6``, ``COL_TI:+6``, then ``COL_TJ + 6k:+6`` nonzero only in rows ``2k, 2k+1``.
+    With observation velocities ``vel_i`` (2,), ``vel_j`` (n, 2) one more column holds
+    ``d r(uv_i - s vel_i, uv_j - s vel_j) / d s`` at ``s = 0`` (the td chain rule).
+    """
+    check_model(model)
+    n = Tjs.shape[0]
+    with_vel = vel_i is not None
+    r = np.empty((n, 2))
+    J = np.zeros((2 * n, COL_TJ + 6 * n + with_vel), order="F")
+    Juvi, Juvj = np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
+    valid = np.empty(n, dtype=np.bool_)
+    if with_vel:
+        vel_i = np.ascontiguousarray(vel_i, dtype=float)
+        vel_j = np.ascontiguousarray(vel_j, dtype=float)
+    else:
+        vel_i, vel_j = _NO_VEL_I, np.zeros((n, 2))
+    _project_kernel(np.ascontiguousarray(Ti, dtype=float), np.ascontiguousarray(Tjs, dtype=float),
+                    np.ascontiguousarray(Tc, dtype=float), float(lam),
+                    np.ascontiguousarray(uv_i, dtype=float), np.ascontiguousarray(uv_j, dtype=float),
+                    np.ascontiguousarray(basis, dtype=float), model == "sphere",
+                    vel_i, vel_j, J.shape[1] - 1 if with_vel else -1, r, J, Juvi, Juvj, valid)
+    return Projected(r, J, Juvi, Juvj, valid)
+
+
+def single_blocks(J: np.ndarray) -> list[np.ndarray]:
+    """Split a one-observation batched Jacobian (2, 19) into ``[J_Ti, J_Tj, J_Tbc, J_lam]``."""
+    return [J[:, COL_TI:COL_TI + 6], J[:, COL_TJ:COL_TJ + 6], J[:, COL_TC:COL_TC + 6],
+            J[:, COL_LAM:COL_LAM + 1]]
+
+
+def projection_residual(T_w_bi: gtsam.Pose3, T_w_bj: gtsam.Pose3, T_b_c: gtsam.Pose3,
+                        inv_depth: float, uv_i: np.ndarray, uv_j: np.ndarray,
+                        model: str = "pinhole") -> tuple[np.ndarray, list[np.ndarray]]:
+    """Residual (2,) of one observation and ``[J_Ti (2,6), J_Tj (2,6), J_Tbc (2,6), J_lam (2,1)]``.
+
+    ``uv_i``, ``uv_j``: normalized-plane observations (2,) in the anchor and target camera;
+    ``inv_depth``: 1/m along the anchor bearing. Unwhitened; tangents ``[omega, v]``.
+    """
+    check_model(model)
+    uv_j = np.asarray(uv_j, dtype=float).reshape(1, 2)
+    p = project_batch(T_w_bi.matrix(), T_w_bj.matrix()[None], T_b_c.matrix(), float(inv_depth),
+                      np.asarray(uv_i, dtype=float).reshape(2), uv_j, model, tangent_basis(uv_j))
+    return p.r[0], single_blocks(p.J)
+
+
+def projection_factor(noise: gtsam.noiseModel.Base, keys: Sequence[int], uv_i: np.ndarray,
+                      uv_j: np.ndarray, model: str = "pinhole",
+                      health: FactorHealth | None = None) -> gtsam.CustomFactor:
+    """``gtsam.CustomFactor`` on keys ``(T_w_bi, T_w_bj, T_b_c, lambda)`` for one observation.
+
+    ``noise`` is any 2-D noise model (e.g. ``factors.robust.robust_noise(...)`` for Huber
+    or Cauchy through ``gtsam.noiseModel.Robust``).
+    """
+    check_model(model)
+    keys = [int(k) for k in keys]
+    if len(keys) != 4 or len(set(keys)) != 4:
+        raise ValueError(f"projection_factor needs 4 distinct keys (Ti, Tj, Tbc, lambda), got {keys}")
+    uv_i = np.ascontiguousarray(uv_i, dtype=float).reshape(2)
+    uv_j = np.ascontiguousarray(uv_j, dtype=float).reshape(1, 2)
+    basis = tangent_basis(uv_j)
+
+    def fn(args: list) -> tuple[np.ndarray, list[np.ndarray]]:
+        Ti, Tj, Tc, lam = args
+        p = project_batch(Ti.matrix(), Tj.matrix()[None], Tc.matrix(), lam[0], uv_i, uv_j,
+                          model, basis)
+        return p.r[0], single_blocks(p.J)
+
+    return custom_factor(noise, keys, ["pose3", "pose3", "pose3", 1], fn, health)
