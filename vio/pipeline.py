@@ -51,6 +51,7 @@ class FrameOutput:
     n_landmarks: int
     td_s: float
     T_b_c: gtsam.Pose3
+    landmark_ids: np.ndarray | None = None
     landmarks_w: np.ndarray | None = None
     features: FeatureFrame | None = None
     packet: FramePacket | None = None
@@ -116,7 +117,7 @@ class Pipeline:
         self.est.add_imu(pkt.imu)
         still = self._still()
         if self._is_keyframe(pkt):
-            res = self.est.add_keyframe(pkt.t_ns, self._features(pkt), still)
+            res = self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1])
             self._kf_features, self._kf_t = pkt.features, pkt.t_ns
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0, kf=True, recovered=res.recovered)
@@ -156,6 +157,7 @@ class Pipeline:
 
     def _start(self, state, pkt: FramePacket) -> None:
         self.est.initialize(state)
+        self.est.kf_gyro[0] = pkt.imu.gyro[-1]
         self.est.lm.observe(0, self._features(pkt))
         self._kf_features, self._kf_t = pkt.features, pkt.t_ns
         self.n_keyframes = 1
@@ -176,15 +178,15 @@ class Pipeline:
               recovered: bool = False) -> FrameOutput:
         if is_kf:
             T, v, b = self.est.latest()
-            pts = self.est.landmarks_w()
+            ids, pts = self.est.landmarks_w()
         else:
             nav = self.est.predict()
             T, v = nav.pose(), nav.velocity()
-            b, pts = self.est.latest()[2], None
+            b, ids, pts = self.est.latest()[2], None, None
         out = FrameOutput(pkt.index, pkt.t_ns, T, np.asarray(v), b, kf, still,
                           time.perf_counter() - t0,
                           0 if pkt.features is None else len(pkt.features.ids),
-                          self.est.lm.n_active(), self.est.td(), self.est.extrinsic(), pts,
+                          self.est.lm.n_active(), self.est.td(), self.est.extrinsic(), ids, pts,
                           pkt.features, pkt)
         for sink in self.sinks:
             sink(out)

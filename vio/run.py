@@ -32,7 +32,11 @@ class RunResult:
     data_s: float = 0.0
     recoveries: int = 0
     smoothed: dict = field(default_factory=dict)
-    landmarks_w: np.ndarray | None = None
+    landmarks: dict = field(default_factory=dict)
+
+    def map_points(self) -> np.ndarray:
+        """(N, 3) latest world estimate of every landmark seen in the run."""
+        return np.array(list(self.landmarks.values())).reshape(-1, 3)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(t_ns, p (N,3), q_wxyz (N,4)) of the online trajectory."""
@@ -73,6 +77,8 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None 
             res.outputs.append(out)
             for k, (t, T) in pipe.est.window_poses().items():
                 res.smoothed[k] = (t, T)
+            if out.landmark_ids is not None:
+                res.landmarks.update(zip(out.landmark_ids.tolist(), out.landmarks_w))
         if bar is not None:
             bar.update(1)
     if bar is not None:
@@ -81,8 +87,6 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None 
     res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
     res.keyframes = pipe.n_keyframes
     res.recoveries = pipe.est.recoveries
-    if pipe.est.initialized:
-        res.landmarks_w = pipe.est.landmarks_w()
     return res
 
 
@@ -137,7 +141,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.map is not None:
         from vio.nav.grid import save_map
         t, p, _ = res.arrays()
-        save_map(args.map, res.landmarks_w if res.landmarks_w is not None else np.zeros((0, 3)), p)
+        save_map(args.map, res.map_points(), p)
     if args.smooth is not None:
         if not args.out:
             raise ValueError("--smooth needs --out (the raw track it smooths)")

@@ -46,11 +46,17 @@ class InitConfig:
 @dataclass(frozen=True)
 class VisionConfig:
     """Visual factors. ``pixel_sigma`` is converted to normalized units with fx.
+    ``td_velocity``: image velocities multiplying td in the td factor, "predicted"
+    from the state (velocity, gyro, depth) or "measured" by the front end; a
+    prediction further than ``td_velocity_gate`` (1/s) from the measurement is
+    replaced by the measurement.
     ``kernel``: robust kernel per observation; ``outlier_px``: landmarks whose worst
     reprojection error exceeds it after an update are removed."""
 
     model: Literal["pinhole", "sphere"] = "pinhole"
     use_td: bool = True
+    td_velocity: Literal["predicted", "measured"] = "predicted"
+    td_velocity_gate: float = 5.0
     pixel_sigma: float = 1.0
     kernel: Literal["huber", "cauchy", "none"] = "huber"
     kernel_k: float = 1.345
@@ -78,12 +84,15 @@ class CalibConfig:
 class SolverConfig:
     """Fixed-lag smoother. ``lag_s``: window length; ``relinearize_*`` map onto
     ``ISAM2Params``. QR factorization avoids GTSAM 4.3's Cholesky rejecting
-    ill-conditioned (not singular) pivots on real data."""
+    ill-conditioned (not singular) pivots on real data. ``wildfire_threshold``: iSAM2
+    stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
+    time offset td (seconds), whose steps are ~1e-4."""
 
     lag_s: float = 2.5
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 10
     factorization: Literal["QR", "CHOLESKY"] = "QR"
+    wildfire_threshold: float = 1e-6
     extra_iterations: int = 0
 
 

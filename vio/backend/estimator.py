@@ -60,6 +60,7 @@ class Estimator:
         self.values = gtsam.Values()
         self.k = -1
         self.kf_t: dict[int, int] = {}
+        self.kf_gyro: dict[int, np.ndarray] = {}
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
@@ -71,6 +72,11 @@ class Estimator:
         p.setFactorization(s.factorization)
         p.setRelinearizeThreshold(s.relinearize_threshold)
         p.relinearizeSkip = s.relinearize_skip
+        # iSAM2 skips updating variables whose change is below the wildfire threshold
+        # (default 1e-3): td (seconds) then never moves; see SolverConfig.wildfire_threshold
+        gn = gtsam.ISAM2GaussNewtonParams()
+        gn.setWildfireThreshold(s.wildfire_threshold)
+        p.setOptimizationParams(gn)
         return gtsam.IncrementalFixedLagSmoother(s.lag_s, p)
 
     def initialize(self, state: InitialState, T_b_c: gtsam.Pose3 | None = None,
@@ -113,8 +119,11 @@ class Estimator:
         T, v, b = self.latest()
         return self.pim.predict(gtsam.NavState(T, v), b)
 
-    def add_keyframe(self, t_ns: int, features: FeatureFrame, still: bool = False) -> KeyframeResult:
-        """Insert a keyframe at ``t_ns`` with the IMU integrated since the last one."""
+    def add_keyframe(self, t_ns: int, features: FeatureFrame, still: bool = False,
+                     gyro: np.ndarray | None = None) -> KeyframeResult:
+        """Insert a keyframe at ``t_ns`` with the IMU integrated since the last one.
+        ``gyro``: the raw gyro reading (rad/s, body) at ``t_ns``, for predicted
+        feature velocities."""
         k0, k1 = self.k, self.k + 1
         pred = self.predict()
         _, _, b0 = self.latest()
@@ -130,6 +139,8 @@ class Estimator:
         stamps = {X(k1): t, V(k1): t, B(k1): t, graph.EXTRINSIC: t, graph.TD: t}
         self.k = k1
         self.kf_t[k1] = t_ns
+        if gyro is not None:
+            self.kf_gyro[k1] = np.asarray(gyro, float)
         self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
@@ -141,6 +152,7 @@ class Estimator:
             recovered = True
         for k in leaving:
             self.kf_t.pop(k, None)
+            self.kf_gyro.pop(k, None)
         n_removed = 0 if recovered else self._remove_outliers(t)
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
@@ -198,8 +210,8 @@ class Estimator:
         """Total camera-to-IMU offset (s): the sync layer's constant plus the estimate."""
         return self.td_applied_s + float(self.values.atVector(graph.TD)[0])
 
-    def landmarks_w(self) -> np.ndarray:
-        """(N, 3) world points of the active landmarks."""
+    def landmarks_w(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ids (N,) and world points (N, 3) of the landmarks in the window."""
         return self.lm.points_w(self.values)
 
     def window_poses(self) -> dict[int, tuple[int, gtsam.Pose3]]:

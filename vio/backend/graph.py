@@ -96,6 +96,18 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
                            TD if v.use_td else None)
 
 
+def image_velocity(uv: np.ndarray, depth: float, omega_c: np.ndarray, vel_c: np.ndarray) -> np.ndarray:
+    """Normalized-plane velocity (1/s) of a static point seen at ``uv`` with depth
+    ``depth`` (m) by a camera moving with angular velocity ``omega_c`` (rad/s) and
+    linear velocity ``vel_c`` (m/s), both in the camera frame (the classical
+    interaction matrix of image-based visual servoing)."""
+    u, v = uv
+    wx, wy, wz = omega_c
+    vx, vy, vz = vel_c
+    return np.array([(-vx + u * vz) / depth + u * v * wx - (1 + u * u) * wy + v * wz,
+                     (-vy + v * vz) / depth + (1 + v * v) * wx - u * v * wy - u * wz])
+
+
 def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values) -> np.ndarray:
     """Normalized-plane reprojection error norms of the non-anchor observations."""
     T_b_c = values.atPose3(EXTRINSIC)

@@ -102,7 +102,8 @@ class LandmarkManager:
                 if tr.factor_index is not None:
                     removals.append(tr.factor_index)
                     tr.factor_index = None
-                self._add_factor(tr, g)
+                lam = v.atVector(tr.key)[0] if v.exists(tr.key) else self.est.values.atVector(tr.key)[0]
+                self._add_factor(tr, g, k, pred, float(lam))
                 stamps[tr.key] = t
         return removals
 
@@ -140,13 +141,49 @@ class LandmarkManager:
             tr.anchor = a
             v.insert(tr.key, np.array([1.0 / z]))
 
-    def _add_factor(self, tr: Track, g: gtsam.NonlinearFactorGraph) -> None:
+    def _add_factor(self, tr: Track, g: gtsam.NonlinearFactorGraph, k: int, pred: gtsam.NavState,
+                    lam: float) -> None:
         frames = tr.frames()
         cam = self.est.cam
-        fac = graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma,
+        src = tr
+        if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
+            src = self._with_predicted_velocity(tr, frames, k, pred, lam)
+        fac = graph.build_landmark_factor(src, frames, self.est.cfg, self.est.sigma,
                                           cam.line_time_s, cam.height)
         self._pending.append((tr, int(g.size())))
         g.add(fac)
+
+    def _with_predicted_velocity(self, tr: Track, frames: list[int], k: int,
+                                 pred: gtsam.NavState, lam: float) -> Track:
+        """A copy of ``tr`` whose observation velocities are predicted from the state
+        (keyframe velocity, bias-corrected gyro, landmark depth) instead of measured:
+        independent of the pixel noise of the observations the factor compares, so the
+        td estimate is not biased towards zero by noise (see ``VisionConfig.td_velocity``).
+        A prediction further than ``td_velocity_gate`` from the measurement (a landmark
+        with a wrong depth) is not used."""
+        vals, est = self.est.values, self.est
+        T_b_c = vals.atPose3(graph.EXTRINSIC)
+        R_c_b = T_b_c.rotation().matrix().T
+        a = tr.obs[frames[0]]
+        p_w = self._pose(frames[0], k, pred).compose(T_b_c).transformFrom(
+            np.array([a.uv[0], a.uv[1], 1.0]) / lam)
+        obs = {}
+        for f in frames:
+            T_w_b = self._pose(f, k, pred)
+            v_w = pred.velocity() if f == k else vals.atVector(graph.V(f))
+            b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
+            w_b = est.kf_gyro.get(f, np.zeros(3)) - b.gyroscope()
+            v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
+            z = T_w_b.compose(T_b_c).transformTo(p_w)[2]
+            o = tr.obs[f]
+            vel = o.velocity
+            if z > self.est.cfg.vision.min_depth_m:
+                p = graph.image_velocity(o.uv, z, R_c_b @ w_b, R_c_b @ v_b)
+                # keep the measurement where the prediction is implausible (bad depth)
+                if np.linalg.norm(p - o.velocity) < self.est.cfg.vision.td_velocity_gate:
+                    vel = p
+            obs[f] = Obs(o.uv, vel, o.row)
+        return Track(tr.lid, obs, tr.key, tr.anchor)
 
     def _pose(self, f: int, k: int, pred: gtsam.NavState) -> gtsam.Pose3:
         return pred.pose() if f == k else self.est.values.atPose3(graph.X(f))
@@ -194,9 +231,9 @@ class LandmarkManager:
                 n += 1
         return g, stamps, removals, n
 
-    def points_w(self, values: gtsam.Values) -> np.ndarray:
-        """(N, 3) world points of tracks in the graph."""
-        pts = []
+    def points_w(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        """Ids (N,) and world points (N, 3) of the tracks in the graph."""
+        pts, ids = [], []
         T_b_c = values.atPose3(graph.EXTRINSIC)
         for tr in self.tracks.values():
             if tr.key is None or not values.exists(tr.key) or not values.exists(graph.X(tr.anchor)):
@@ -207,4 +244,5 @@ class LandmarkManager:
             a = tr.obs[tr.anchor]
             T = values.atPose3(graph.X(tr.anchor)).compose(T_b_c)
             pts.append(T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam))
-        return np.array(pts).reshape(-1, 3)
+            ids.append(tr.lid)
+        return np.array(ids, dtype=np.int64), np.array(pts).reshape(-1, 3)

@@ -148,7 +148,7 @@ def simulate(out_dir: Path, cfg: SimConfig, progress: bool = False,
         exposure[cam.name] = exposure_sequence(cfg.exposure_changes, t_frames, cfg.exposure_log_gain_amp,
                                                cfg.exposure_bias_amp, cfg.exposure_period_s, rng)
     writers = [CameraWriter(mav0 / cam.name, cam) for cam in world.cameras]
-    frames = range(len(stamps))
+    frames = range(len(stamps) if cfg.render_images else 0)
     if progress:
         from tqdm import tqdm
         frames = tqdm(frames, desc="vio sim", unit="frame")

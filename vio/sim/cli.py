@@ -43,6 +43,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--speed", type=float, help="mean speed in m/s (default 0.7)")
     p.add_argument("--noise-free", action="store_true",
                    help="no IMU white noise, no bias random walk, no pixel noise")
+    p.add_argument("--no-images", action="store_true",
+                   help="write IMU, ground truth and calibration only (e.g. for `vio tracks`)")
     p.add_argument("--force", action="store_true", help="replace an existing OUT/mav0")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
     p.set_defaults(func=run)
@@ -63,6 +65,8 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
             data[key] = value
     if getattr(args, "noise_free", False):
         data.update(imu_noise=False, image_noise_sigma=0.0)
+    if getattr(args, "no_images", False):
+        data["render_images"] = False
     return from_dict(SimConfig, data, str(args.config) if getattr(args, "config", None) else "vio sim")
 
 

@@ -48,6 +48,7 @@ class SimConfig:
     td_s: float = 0.0
     line_time_s: float = 0.0
     stereo: bool = True
+    render_images: bool = True
     exposure_changes: ExposureMode = "none"
     exposure_log_gain_amp: float = 0.3
     exposure_bias_amp: float = 8.0
