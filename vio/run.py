@@ -130,8 +130,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     sinks = []
     if args.rerun or args.rrd:
         from vio.viz import RerunSink
-        sinks.append(RerunSink(spawn=args.rerun, rrd=args.rrd, groundtruth=data.groundtruth))
-    res = run_dataset(data, cfg, args.max_frames, sinks, progress=not args.no_progress)
+        sinks.append(RerunSink(spawn=args.rerun, rrd=args.rrd, groundtruth=data.groundtruth,
+                               cam=data.cam0.calib))
+    try:
+        res = run_dataset(data, cfg, args.max_frames, sinks, progress=not args.no_progress)
+    finally:
+        for sink in sinks:
+            sink.close()
     if args.out:
         t, _, _ = res.arrays()
         write_tum(args.out, t, [o.T_w_b for o in res.outputs])

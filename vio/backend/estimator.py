@@ -21,7 +21,6 @@ import numpy as np
 from vio.backend import graph
 from vio.backend.config import BackendConfig
 from vio.backend.init import InitialState
-from vio.backend.landmarks import Track
 from vio.backend.tracks import LandmarkManager
 from vio.imu import combined_params, integrate
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData

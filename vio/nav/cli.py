@@ -21,10 +21,8 @@ import numpy as np
 from vio.config import load
 from vio.errors import ConfigError, DataError
 from vio.nav.astar import AStarConfig, PlanResult, astar_grid, plan
-from vio.nav.grid import GridConfig, MapData, OccupancyGrid, load_map, plane_split
+from vio.nav.grid import GridConfig, OccupancyGrid, load_map, plane_split
 from vio.nav.kalman import KalmanConfig, SmoothedTrack, apply_planar, read_tum, smooth_track, write_tum
-
-_AXIS = {"x": 0, "y": 1, "z": 2}
 
 
 def _parse_xy(text: str) -> tuple[float, float]:
@@ -94,7 +92,8 @@ def run_plan(args: argparse.Namespace) -> int:
     elif args.out:
         print(f"not writing {args.out}: no path")
     if args.rrd:
-        log_plan_rrd(args.rrd, grid, res, m)
+        from vio.viz import log_plan
+        log_plan(args.rrd, grid, res, m)
         print(f"wrote    {args.rrd}")
     return 0 if res.found else 1
 
@@ -103,44 +102,6 @@ def write_path_csv(path: Path, res: PlanResult, plane_axes: tuple[str, str] = ("
     """CSV with a header naming the plane axes, one row per path cell centre [m]."""
     header = f"{plane_axes[0]},{plane_axes[1]}"
     np.savetxt(path, res.path_world, delimiter=",", header=header, comments="", fmt="%.6f")
-
-
-def _to_world(uv: np.ndarray, height: float | np.ndarray, plane_axes: tuple[str, str]) -> np.ndarray:
-    """Plane points (K, 2) + height along ``e_u x e_v`` -> world points (K, 3)."""
-    ea, eb = (np.eye(3)[_AXIS[a]] for a in plane_axes)
-    n = np.cross(ea, eb)
-    return uv[:, :1] * ea + uv[:, 1:2] * eb + np.reshape(height, (-1, 1)) * n
-
-
-def log_plan_rrd(path: Path, grid: OccupancyGrid, res: PlanResult, m: MapData | None = None) -> None:
-    """Record the grid (image: white free, grey inflation, black obstacle), path and map to ``path``.
-
-    The image is in cell coordinates (x = column = u, y = row = v, so it shows
-    v growing downward); ``plan/grid/path`` overlays it in pixel units.
-    ``world/...`` holds the same path in 3D on the floor, with landmarks and
-    trajectory. Rerun is imported here only, and writes to the file without a viewer.
-    """
-    import rerun as rr
-
-    rec = rr.RecordingStream("vio_plan")
-    rec.save(str(path))
-    img = np.full(grid.shape, 255, np.uint8)
-    img[grid.blocked] = 160
-    img[grid.occupied] = 0
-    rec.log("plan/grid", rr.Image(img, color_model="L"))
-    ends = np.array([res.start_cell, res.goal_cell], dtype=float)[:, ::-1] + 0.5
-    rec.log("plan/grid/endpoints", rr.Points2D(ends, colors=[[0, 200, 0], [220, 0, 0]], radii=1.5,
-                                               labels=["start", "goal"]))
-    if res.found:
-        rec.log("plan/grid/path", rr.LineStrips2D([res.path_cells[:, ::-1] + 0.5], colors=[[0, 90, 255]]))
-        xyz = _to_world(res.path_world, grid.floor_height, grid.plane_axes)
-        rec.log("world/plan/path", rr.LineStrips3D([xyz], colors=[[0, 90, 255]], radii=0.02))
-    if m is not None and len(m.points_w):
-        rec.log("world/map/landmarks", rr.Points3D(m.points_w, radii=0.01, colors=[[120, 120, 120]]))
-    if m is not None and len(m.trajectory_xyz) > 1:
-        rec.log("world/map/trajectory", rr.LineStrips3D([m.trajectory_xyz], colors=[[255, 150, 0]]))
-    rec.flush()
-    rec.disconnect()
 
 
 def smooth_file(traj_in: Path, traj_out: Path, cfg: KalmanConfig = KalmanConfig()) -> SmoothedTrack:
