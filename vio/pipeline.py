@@ -19,6 +19,7 @@ from vio.backend.config import BackendConfig
 from vio.backend.estimator import Estimator
 from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
+from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 from vio.sync import FramePacket
@@ -29,10 +30,11 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class PipelineConfig:
     """``td_s``: camera-to-IMU offset applied by the sync layer (s);
-    ``backend``: estimator parameters."""
+    ``backend``: estimator parameters; ``frontend``: KLT tracking (image modes)."""
 
     td_s: float = 0.0
     backend: BackendConfig = field(default_factory=BackendConfig)
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
 
 
 @dataclass(frozen=True)
@@ -58,13 +60,16 @@ class FrameOutput:
 
 
 class Pipeline:
-    """Feature-track VIO: feed ``FramePacket``s in time order to ``process``."""
+    """VIO on feature packets: feed ``FramePacket``s with ``features`` in time order to
+    ``process`` (image packets go through ``vio.tracking.ImageStage`` first). With
+    ``cam1`` the packets' ``right_uv`` observations add stereo factors."""
 
-    def __init__(self, imu_calib: ImuCalib, cam: CameraCalib, cfg: PipelineConfig) -> None:
+    def __init__(self, imu_calib: ImuCalib, cam: CameraCalib, cfg: PipelineConfig,
+                 cam1: CameraCalib | None = None) -> None:
         self.cfg = cfg
         self.cam = cam
         self.imu_calib = imu_calib
-        self.est = Estimator(imu_calib, cam, cfg.backend, cfg.td_s)
+        self.est = Estimator(imu_calib, cam, cfg.backend, cfg.td_s, cam1)
         self._init_buf: list[FramePacket] = []
         self.sinks: list[Callable[[FrameOutput], None]] = []
         self._recent: deque[FramePacket] = deque()

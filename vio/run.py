@@ -54,17 +54,53 @@ def load_config(path: Path | None, td: float | None = None) -> PipelineConfig:
     return cfg
 
 
+MODES = ("features", "mono", "stereo")
+
+
+def resolve_mode(data: EurocDataset, mode: str) -> str:
+    """``auto`` -> features when tracks exist, else stereo/mono by the images present."""
+    if mode == "auto":
+        mode = "features" if data.features is not None else data.kind
+    if mode not in MODES:
+        raise ValueError(f"mode {mode!r} is not available (choose from {MODES})")
+    if mode == "features" and data.features is None:
+        raise ValueError(f"{data.root}: no cam0/features.csv for --mode features")
+    if mode in ("mono", "stereo") and not data.cam0.has_images():
+        raise ValueError(f"{data.root}: no cam0 images for --mode {mode}")
+    if mode == "stereo" and (data.cam1 is None or not data.cam1.has_images()):
+        raise ValueError(f"{data.root}: no cam1 images for --mode stereo")
+    return mode
+
+
+def _image_files(data: EurocDataset, stereo: bool, n: int) -> list[tuple]:
+    if not stereo:
+        return [(f,) for f in data.cam0.files[:n]]
+    right = dict(zip(data.cam1.t_ns.tolist(), data.cam1.files))
+    out = []
+    for t, f in zip(data.cam0.t_ns[:n].tolist(), data.cam0.files[:n]):
+        if t not in right:
+            raise ValueError(f"{data.root}: cam0 frame {t} has no cam1 image with the same stamp")
+        out.append((f, right[t]))
+    return out
+
+
 def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None = None,
-                sinks: list | None = None, progress: bool = False) -> RunResult:
-    """Run the feature-track pipeline over a loaded dataset."""
-    if data.features is None:
-        raise ValueError(f"{data.root}: no feature tracks (cam0/features.csv); image modes need "
-                         f"the image front end")
-    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
+                sinks: list | None = None, progress: bool = False, mode: str = "auto") -> RunResult:
+    """Run the pipeline over a loaded dataset (feature tracks, or images through the
+    KLT front end in ``mono``/``stereo`` mode)."""
+    mode = resolve_mode(data, mode)
+    stereo = mode == "stereo"
+    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg, data.cam1.calib if stereo else None)
     pipe.sinks.extend(sinks or [])
     res = RunResult()
     stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
-    it = packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)])
+    stage = None
+    if mode == "features":
+        it = packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)])
+    else:
+        from vio.tracking import ImageStage
+        stage = ImageStage(data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
+        it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)))
     bar = None
     if progress:
         from tqdm import tqdm
@@ -72,6 +108,8 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None 
     t0 = time.perf_counter()
     for pkt in it:
         res.frames_in += 1
+        if stage is not None:
+            pkt = stage(pkt)
         out = pipe.process(pkt)
         if out is not None:
             res.outputs.append(out)
@@ -122,10 +160,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise ValueError("give a DATASET folder or --demo")
     else:
         data = load_euroc(args.dataset, LoadOptions(trim_to_imu=args.trim))
-    mode = args.mode if args.mode != "auto" else ("features" if data.features is not None else data.kind)
-    if mode != "features":
-        raise ValueError(f"mode {mode!r} needs the image front end, which this build does not "
-                         f"include yet; feature-track datasets (cam0/features.csv) are supported")
+    mode = resolve_mode(data, args.mode)
     cfg = load_config(args.config, args.td)
     sinks = []
     if args.rerun or args.rrd:
@@ -133,7 +168,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         sinks.append(RerunSink(spawn=args.rerun, rrd=args.rrd, groundtruth=data.groundtruth,
                                cam=data.cam0.calib))
     try:
-        res = run_dataset(data, cfg, args.max_frames, sinks, progress=not args.no_progress)
+        res = run_dataset(data, cfg, args.max_frames, sinks, progress=not args.no_progress,
+                          mode=mode)
     finally:
         for sink in sinks:
             sink.close()

@@ -49,7 +49,8 @@ class VisionConfig:
     ``td_velocity``: image velocities multiplying td in the td factor, "predicted"
     from the state (velocity, gyro, depth) or "measured" by the front end; a
     prediction further than ``td_velocity_gate`` (1/s) from the measurement is
-    replaced by the measurement.
+    replaced by the measurement. ``max_landmarks``: cap on landmarks in the window
+    (new tracks wait while it is reached; Python factor callbacks dominate the cost).
     ``kernel``: robust kernel per observation; ``outlier_px``: landmarks whose worst
     reprojection error exceeds it after an update are removed."""
 
@@ -64,6 +65,8 @@ class VisionConfig:
     min_parallax_deg: float = 1.0
     max_wait_keyframes: int = 6
     default_depth_m: float = 5.0
+    max_stereo_depth_m: float = 20.0
+    max_landmarks: int = 120
     min_depth_m: float = 0.1
     max_depth_m: float = 100.0
 

@@ -72,12 +72,15 @@ def init_window(packets: list, step_s: float) -> InitWindow:
                       tuple(segs))
 
 
-def _tracks(win: InitWindow, min_obs: int = 3) -> dict[int, list[tuple[int, np.ndarray]]]:
+def _tracks(win: InitWindow, min_obs: int = 3, max_tracks: int = 80
+            ) -> dict[int, list[tuple[int, np.ndarray]]]:
+    """The ``max_tracks`` longest tracks seen in at least ``min_obs`` keyframes."""
     obs: dict[int, list[tuple[int, np.ndarray]]] = {}
     for k, fr in enumerate(win.features):
         for lid, uv in zip(fr.ids, fr.uv):
             obs.setdefault(int(lid), []).append((k, np.asarray(uv, float)))
-    return {l: o for l, o in obs.items() if len(o) >= min_obs}
+    best = sorted((l for l, o in obs.items() if len(o) >= min_obs), key=lambda l: -len(obs[l]))
+    return {l: obs[l] for l in best[:max_tracks]}
 
 
 def _preintegrate(win: InitWindow, params, bias) -> tuple[list[np.ndarray], list[np.ndarray], list]:

@@ -48,9 +48,12 @@ class Estimator:
     keyframes, ``add_keyframe``; ``predict`` gives the IMU-propagated current state."""
 
     def __init__(self, imu_calib: ImuCalib, cam: CameraCalib, cfg: BackendConfig,
-                 td0_s: float = 0.0) -> None:
+                 td0_s: float = 0.0, cam1: CameraCalib | None = None) -> None:
         self.cfg = cfg
         self.cam = cam
+        # stereo rig (fixed): cam1 relative to cam0, and C = T_b_c1 T_b_c0^-1
+        self.T_c0_c1 = cam.T_b_c.between(cam1.T_b_c) if cam1 is not None else None
+        self.C_stereo = cam1.T_b_c.compose(cam.T_b_c.inverse()) if cam1 is not None else None
         self.params = combined_params(imu_calib, cfg.imu)
         self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
         self.td0 = 0.0  # residual td prior mean (the sync layer applies td0_s)

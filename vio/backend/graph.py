@@ -13,6 +13,7 @@ import numpy as np
 
 from factors.landmark import landmark_factor, make_track
 from factors.robust import RobustKernel
+from factors.stereo import make_stereo_track, stereo_factor
 from vio.backend.config import BackendConfig, CalibConfig, InitConfig
 from vio.backend.init import InitialState
 from vio.backend.landmarks import Track
@@ -106,6 +107,29 @@ def image_velocity(uv: np.ndarray, depth: float, omega_c: np.ndarray, vel_c: np.
     vx, vy, vz = vel_c
     return np.array([(-vx + u * vz) / depth + u * v * wx - (1 + u * u) * wy + v * wz,
                      (-vy + v * vz) / depth + (1 + v * v) * wx - u * v * wy - u * wz])
+
+
+def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma: float,
+                        line_time_s: float, rows: int) -> gtsam.NonlinearFactor:
+    """The landmark's cam1 observations (``factors.stereo``); ``C = T_b_c1 T_b_c0^-1``."""
+    frames = track.frames()
+    a = track.obs[frames[0]]
+    sf = track.stereo_frames()
+    readout = line_time_s * rows
+
+    def offset(o) -> float:
+        return 0.0 if not np.isfinite(o.row) else o.row / rows * readout
+
+    st = make_stereo_track(X(frames[0]), a.uv, [X(f) for f in sf],
+                           np.array([track.obs[f].right_uv for f in sf]), C,
+                           anchor_vel=a.velocity,
+                           vel=np.array([track.obs[f].right_velocity for f in sf]),
+                           anchor_offset=offset(a),
+                           offset=np.array([offset(track.obs[f]) for f in sf]))
+    v = cfg.vision
+    kernel = None if v.kernel == "none" else RobustKernel(v.kernel, v.kernel_k)
+    return stereo_factor(st, track.key, EXTRINSIC, sigma, v.model, kernel,
+                         TD if v.use_td else None)
 
 
 def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values) -> np.ndarray:

@@ -14,28 +14,35 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Obs:
-    """One observation: normalized coordinates (2,), velocity (2,) 1/s, pixel row."""
+    """One observation: normalized coordinates (2,), velocity (2,) 1/s, pixel row;
+    ``right_uv`` / ``right_velocity``: the same point in cam1 (None without stereo)."""
 
     uv: np.ndarray
     velocity: np.ndarray
     row: float
+    right_uv: np.ndarray | None = None
+    right_velocity: np.ndarray | None = None
 
 
 @dataclass
 class Track:
     """A landmark's observations by keyframe index, its current inverse-depth key
-    (anchored in keyframe ``anchor``), and the index of its factor in the smoother."""
+    (anchored in keyframe ``anchor``), and the smoother indices of its factors
+    (cam0 factor and, with stereo, cam1 factor)."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
     key: int | None = None
     anchor: int | None = None
-    factor_index: int | None = None
+    factor_indices: list[int] = field(default_factory=list)
     waited: int = 0
     rejected: bool = False
 
     def frames(self) -> list[int]:
         return sorted(self.obs)
+
+    def stereo_frames(self) -> list[int]:
+        return [f for f in self.frames() if self.obs[f].right_uv is not None]
 
 
 def bearing_depth(anchor_uv: np.ndarray, T_w_ca: gtsam.Pose3,
@@ -63,3 +70,10 @@ def bearing_depth(anchor_uv: np.ndarray, T_w_ca: gtsam.Pose3,
     if denom < 1e-12:
         return float("nan"), max_angle
     return float(a @ bb) / denom, max_angle
+
+
+def stereo_depth(uv0: np.ndarray, uv1: np.ndarray, T_c0_c1: gtsam.Pose3) -> float:
+    """Depth (z in cam0, m) of a point seen at ``uv0`` in cam0 and ``uv1`` in cam1,
+    by the same linear least squares as :func:`bearing_depth`."""
+    d, _ = bearing_depth(uv0, gtsam.Pose3(), [(uv1, T_c0_c1)])
+    return d

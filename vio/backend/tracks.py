@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 
 from vio.backend import graph
-from vio.backend.landmarks import Obs, Track, bearing_depth
+from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.io.types import FeatureFrame
 
 if TYPE_CHECKING:
@@ -33,15 +33,21 @@ class LandmarkManager:
         self.rejected: set[int] = set()
         self._next_key = 0
         self._pending: list[tuple[Track, int]] = []
+        self._motion_cache: dict = {}
 
     # ------------------------------------------------------------ bookkeeping
     def observe(self, k: int, fr: FeatureFrame) -> None:
-        for lid, uv, vel, row in zip(fr.ids, fr.uv, fr.velocity, fr.row):
+        right = fr.right_uv if fr.right_uv is not None else np.full((len(fr.ids), 2), np.nan)
+        rvel = fr.right_velocity if fr.right_velocity is not None else np.zeros((len(fr.ids), 2))
+        for lid, uv, vel, row, ruv, rv in zip(fr.ids, fr.uv, fr.velocity, fr.row, right, rvel):
             lid = int(lid)
             if lid in self.rejected:
                 continue
             tr = self.tracks.setdefault(lid, Track(lid))
-            tr.obs[k] = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row))
+            has_r = bool(np.all(np.isfinite(ruv)))
+            tr.obs[k] = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row),
+                            np.asarray(ruv, float) if has_r else None,
+                            np.asarray(rv, float) if has_r else None)
 
     def n_active(self) -> int:
         return sum(1 for t in self.tracks.values() if t.key is not None)
@@ -50,7 +56,8 @@ class LandmarkManager:
         """After a solver restart: forget keys and factors, keep the newest observations."""
         k = self.est.k
         for tr in self.tracks.values():
-            tr.key = tr.anchor = tr.factor_index = None
+            tr.key = tr.anchor = None
+            tr.factor_indices = []
             tr.obs = {f: o for f, o in tr.obs.items() if f == k}
             tr.waited = 0
         self.tracks = {i: t for i, t in self.tracks.items() if t.obs}
@@ -63,7 +70,7 @@ class LandmarkManager:
     def record_factor_indices(self, indices) -> None:
         idx = list(indices)
         for tr, pos in self._pending:
-            tr.factor_index = int(idx[pos])
+            tr.factor_indices.append(int(idx[pos]))
         self._pending = []
 
     # ----------------------------------------------------------- graph update
@@ -73,9 +80,12 @@ class LandmarkManager:
         """Add this keyframe's landmark factors to ``g``/``v``/``stamps``; return the
         smoother indices of factors to remove."""
         removals: list[int] = []
+        self._motion_cache: dict = {}
         t = self.est.kf_t[k] * 1e-9
         leave = set(leaving)
-        for lid in list(self.tracks):
+        n_active = self.n_active()
+        # longest tracks first, so the landmark cap keeps the best-constrained ones
+        for lid in sorted(self.tracks, key=lambda i: -len(self.tracks[i].obs)):
             tr = self.tracks[lid]
             live = k in tr.obs
             p_w = None
@@ -96,12 +106,12 @@ class LandmarkManager:
                 if tr.key is not None:
                     stamps[tr.key] = self.est.kf_t[tr.anchor] * 1e-9
                 continue
-            if tr.key is None:
+            if tr.key is None and n_active < self.est.cfg.vision.max_landmarks:
                 self._try_insert(tr, k, pred, v)
-            if tr.key is not None and len(tr.obs) >= 2:
-                if tr.factor_index is not None:
-                    removals.append(tr.factor_index)
-                    tr.factor_index = None
+                n_active += tr.key is not None
+            if tr.key is not None and (len(tr.obs) >= 2 or tr.stereo_frames()):
+                removals.extend(tr.factor_indices)
+                tr.factor_indices = []
                 lam = v.atVector(tr.key)[0] if v.exists(tr.key) else self.est.values.atVector(tr.key)[0]
                 self._add_factor(tr, g, k, pred, float(lam))
                 stamps[tr.key] = t
@@ -110,13 +120,13 @@ class LandmarkManager:
     def _retire_key(self, tr: Track, g: gtsam.NonlinearFactorGraph, stamps: dict,
                     removals: list[int]) -> None:
         """Detach a track's factor; its old key keeps a weak prior and is marginalized."""
-        if tr.factor_index is not None:
-            removals.append(tr.factor_index)
+        removals.extend(tr.factor_indices)
         if tr.key is not None:
             val = self.est.values.atVector(tr.key) if self.est.values.exists(tr.key) else np.ones(1)
             g.add(gtsam.PriorFactorVector(tr.key, val, WEAK))
             stamps[tr.key] = 0.0
-        tr.key = tr.anchor = tr.factor_index = None
+        tr.key = tr.anchor = None
+        tr.factor_indices = []
 
     def _point_w(self, tr: Track) -> np.ndarray | None:
         vals = self.est.values
@@ -148,10 +158,14 @@ class LandmarkManager:
         src = tr
         if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
             src = self._with_predicted_velocity(tr, frames, k, pred, lam)
-        fac = graph.build_landmark_factor(src, frames, self.est.cfg, self.est.sigma,
-                                          cam.line_time_s, cam.height)
-        self._pending.append((tr, int(g.size())))
-        g.add(fac)
+        if len(frames) >= 2:
+            self._pending.append((tr, int(g.size())))
+            g.add(graph.build_landmark_factor(src, frames, self.est.cfg, self.est.sigma,
+                                              cam.line_time_s, cam.height))
+        if self.est.C_stereo is not None and src.stereo_frames():
+            self._pending.append((tr, int(g.size())))
+            g.add(graph.build_stereo_factor(src, self.est.C_stereo, self.est.cfg, self.est.sigma,
+                                            cam.line_time_s, cam.height))
 
     def _with_predicted_velocity(self, tr: Track, frames: list[int], k: int,
                                  pred: gtsam.NavState, lam: float) -> Track:
@@ -161,29 +175,43 @@ class LandmarkManager:
         td estimate is not biased towards zero by noise (see ``VisionConfig.td_velocity``).
         A prediction further than ``td_velocity_gate`` from the measurement (a landmark
         with a wrong depth) is not used."""
+        a = tr.obs[frames[0]]
+        T_w_ca, _, _ = self._frame_motion(frames[0], k, pred)
+        p_w = T_w_ca.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
+        obs = {}
+        vc = self.est.cfg.vision
+        for f in frames:
+            T_w_c, w_c, v_c = self._frame_motion(f, k, pred)
+            z = T_w_c.transformTo(p_w)[2]
+            o = tr.obs[f]
+            vel = o.velocity
+            if z > vc.min_depth_m:
+                p = graph.image_velocity(o.uv, z, w_c, v_c)
+                # keep the measurement where the prediction is implausible (bad depth)
+                if np.linalg.norm(p - o.velocity) < vc.td_velocity_gate:
+                    vel = p
+            obs[f] = Obs(o.uv, vel, o.row, o.right_uv, o.right_velocity)
+        return Track(tr.lid, obs, tr.key, tr.anchor)
+
+    def _frame_motion(self, f: int, k: int, pred: gtsam.NavState
+                      ) -> tuple[gtsam.Pose3, np.ndarray, np.ndarray]:
+        """``T_w_c`` of keyframe f and its camera angular / linear velocity in the camera
+        frame (bias-corrected gyro, estimated velocity); cached per update."""
+        key = (f, k)
+        hit = self._motion_cache.get(key)
+        if hit is not None:
+            return hit
         vals, est = self.est.values, self.est
         T_b_c = vals.atPose3(graph.EXTRINSIC)
         R_c_b = T_b_c.rotation().matrix().T
-        a = tr.obs[frames[0]]
-        p_w = self._pose(frames[0], k, pred).compose(T_b_c).transformFrom(
-            np.array([a.uv[0], a.uv[1], 1.0]) / lam)
-        obs = {}
-        for f in frames:
-            T_w_b = self._pose(f, k, pred)
-            v_w = pred.velocity() if f == k else vals.atVector(graph.V(f))
-            b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
-            w_b = est.kf_gyro.get(f, np.zeros(3)) - b.gyroscope()
-            v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
-            z = T_w_b.compose(T_b_c).transformTo(p_w)[2]
-            o = tr.obs[f]
-            vel = o.velocity
-            if z > self.est.cfg.vision.min_depth_m:
-                p = graph.image_velocity(o.uv, z, R_c_b @ w_b, R_c_b @ v_b)
-                # keep the measurement where the prediction is implausible (bad depth)
-                if np.linalg.norm(p - o.velocity) < self.est.cfg.vision.td_velocity_gate:
-                    vel = p
-            obs[f] = Obs(o.uv, vel, o.row)
-        return Track(tr.lid, obs, tr.key, tr.anchor)
+        T_w_b = self._pose(f, k, pred)
+        v_w = pred.velocity() if f == k else vals.atVector(graph.V(f))
+        b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
+        w_b = est.kf_gyro.get(f, np.zeros(3)) - b.gyroscope()
+        v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
+        out = (T_w_b.compose(T_b_c), R_c_b @ w_b, R_c_b @ v_b)
+        self._motion_cache[key] = out
+        return out
 
     def _pose(self, f: int, k: int, pred: gtsam.NavState) -> gtsam.Pose3:
         return pred.pose() if f == k else self.est.values.atPose3(graph.X(f))
@@ -191,9 +219,21 @@ class LandmarkManager:
     def _try_insert(self, tr: Track, k: int, pred: gtsam.NavState, v: gtsam.Values) -> None:
         """Give the track a key and an initial inverse depth once it is triangulable."""
         frames = tr.frames()
+        vc = self.est.cfg.vision
+        if self.est.T_c0_c1 is not None:
+            for f in frames:
+                o = tr.obs[f]
+                if o.right_uv is None:
+                    continue
+                z = stereo_depth(o.uv, o.right_uv, self.est.T_c0_c1)
+                if np.isfinite(z) and vc.min_depth_m <= z <= min(vc.max_depth_m, vc.max_stereo_depth_m):
+                    tr.key, tr.anchor = self._new_key(), f
+                    for g in [g for g in frames if g < f]:
+                        del tr.obs[g]          # the anchor is the first kept observation
+                    v.insert(tr.key, np.array([1.0 / z]))
+                    return
         if len(frames) < 2:
             return
-        vc = self.est.cfg.vision
         T_b_c = self.est.values.atPose3(graph.EXTRINSIC)
         cams = [self._pose(f, k, pred).compose(T_b_c) for f in frames]
         depth, angle = bearing_depth(tr.obs[frames[0]].uv, cams[0],
@@ -219,7 +259,7 @@ class LandmarkManager:
         g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
         for lid in list(self.tracks):
             tr = self.tracks[lid]
-            if tr.key is None or tr.factor_index is None:
+            if tr.key is None or not tr.factor_indices:
                 continue
             lam = float(values.atVector(tr.key)[0])
             bad_depth = not (1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m)

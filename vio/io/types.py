@@ -113,7 +113,8 @@ class FeatureFrame:
     ``ids`` (M,) int64 landmark ids; ``uv`` (M, 2) undistorted normalized image
     coordinates (x/z, y/z) in this camera; ``velocity`` (M, 2) normalized-plane
     velocity in 1/s (zeros when unknown); ``row`` (M,) image row in pixels used
-    for rolling shutter (NaN when unknown).
+    for rolling shutter (NaN when unknown). ``right_uv`` / ``right_velocity`` (M, 2):
+    the same features in the second camera (NaN rows where unmatched; None: mono).
     """
 
     t_ns: int
@@ -121,6 +122,8 @@ class FeatureFrame:
     uv: np.ndarray
     velocity: np.ndarray
     row: np.ndarray
+    right_uv: np.ndarray | None = None
+    right_velocity: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,138 @@
+"""Stereo (second-camera) observations of an inverse-depth landmark.
+
+The landmark is anchored in cam0 of keyframe a (``P_c0a = [u, v, 1] / lambda``);
+an observation by cam1 of keyframe m (m may be a itself: the static stereo
+constraint that gives depth at once) is the projection through
+``T_w_c1m = T_w_bm * T_b_c1``. Writing ``T_b_c1 = C * T_b_c0`` with the constant
+``C = T_b_c1 * T_b_c0^-1`` (the stereo rig is rigid and calibrated), the cam1 view is
+the cam0 view of a *virtual body* ``T_w_bm * C``, so the batched projection kernel
+of :mod:`factors.projection` (and its td variant) is reused unchanged. For GTSAM's
+retraction, ``T Exp(xi) C = (T C) Exp(Ad_{C^-1} xi)``, hence
+``dr/dxi_m = dr/dxi_virtual * Ad_{C^-1}``. The extrinsic key ``T_b_c0`` enters through
+the anchor and the virtual-body projection with ``C`` held constant: exact when the
+extrinsic is fixed (the default), a first-order approximation when it is estimated.
+
+Keys: ``[lambda, T_b_c0, T_w_b_anchor, T_w_b_m1 ... T_w_b_mk]`` (+ ``td``), the
+``m`` distinct and different from the anchor (right observations of the anchor
+keyframe map onto the anchor key). Residuals: one 2-vector per right observation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import gtsam
+import numpy as np
+
+from factors.adapter import FactorHealth, custom_factor
+from factors.projection import COL_TJ, check_model, project_batch, tangent_basis
+from factors.robust import RobustKernel, reweight_blocks
+from factors.td_projection import td_project_batch
+
+
+@dataclass(frozen=True)
+class StereoTrack:
+    """Right-camera observations of one landmark.
+
+    ``anchor_key`` and the anchor's cam0 observation ``anchor_uv`` (2,) with its
+    velocity and time offset; ``target`` (n,) index of each observation's body key
+    (0 = anchor, i >= 1 = ``keys[i - 1]``); ``uv`` (n, 2) cam1 normalized points,
+    ``vel`` (n, 2) their velocities (1/s), ``offset`` (n,) row-time minus td_obs (s);
+    ``C`` (4, 4) = ``T_b_c1 * T_b_c0^-1``.
+    """
+
+    anchor_key: int
+    anchor_uv: np.ndarray
+    anchor_vel: np.ndarray
+    anchor_offset: float
+    keys: tuple
+    target: np.ndarray
+    uv: np.ndarray
+    vel: np.ndarray
+    offset: np.ndarray
+    C: np.ndarray
+    ad_inv: np.ndarray
+    basis: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.target.shape[0])
+
+
+def make_stereo_track(anchor_key: int, anchor_uv: np.ndarray, obs_keys: Sequence[int],
+                      uv: np.ndarray, C: gtsam.Pose3, anchor_vel: np.ndarray | None = None,
+                      vel: np.ndarray | None = None, anchor_offset: float = 0.0,
+                      offset: np.ndarray | None = None) -> StereoTrack:
+    """Pack right observations made from the body keys ``obs_keys`` (anchor allowed)."""
+    obs_keys = [int(k) for k in obs_keys]
+    n = len(obs_keys)
+    if n == 0:
+        raise ValueError("stereo track without observations")
+    if len(set(obs_keys)) != n:
+        raise ValueError(f"stereo track repeats a body key: {obs_keys}")
+    others = [k for k in obs_keys if k != int(anchor_key)]
+    index = {k: i + 1 for i, k in enumerate(others)}
+    index[int(anchor_key)] = 0
+    uv = np.asarray(uv, float).reshape(n, 2)
+    return StereoTrack(int(anchor_key), np.asarray(anchor_uv, float).reshape(2),
+                       np.zeros(2) if anchor_vel is None else np.asarray(anchor_vel, float).reshape(2),
+                       float(anchor_offset), tuple(others),
+                       np.array([index[k] for k in obs_keys], dtype=np.int64), uv,
+                       np.zeros((n, 2)) if vel is None else np.asarray(vel, float).reshape(n, 2),
+                       np.zeros(n) if offset is None else np.asarray(offset, float).reshape(n),
+                       C.matrix(), C.inverse().AdjointMap(), tangent_basis(uv))
+
+
+def stereo_keys(track: StereoTrack, lam_key: int, extrinsic_key: int,
+                td_key: int | None = None) -> list[int]:
+    keys = [int(lam_key), int(extrinsic_key), track.anchor_key, *track.keys]
+    return keys + ([int(td_key)] if td_key is not None else [])
+
+
+def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigma: float = 1.0,
+                    robust: RobustKernel | None = None, use_td: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked residual (2n,) and Jacobian (2n, 13 + 6k [+1]) in :func:`stereo_keys` order.
+
+    ``args``: ``[lambda (1,), T_b_c0, T_anchor, T_m1..T_mk]`` (+ ``td (1,)``).
+    """
+    n, k = track.n, len(track.keys)
+    bodies = [args[2]] + list(args[3:3 + k])
+    Tjs = np.array([bodies[t].matrix() @ track.C for t in track.target])
+    Ti, Tc, lam = args[2].matrix(), args[1].matrix(), float(args[0][0])
+    if use_td:
+        p = td_project_batch(Ti, Tjs, Tc, lam, float(args[3 + k][0]), track.anchor_uv,
+                             track.anchor_vel, track.anchor_offset, track.uv, track.vel,
+                             track.offset, model, track.basis)
+    else:
+        p = project_batch(Ti, Tjs, Tc, lam, track.anchor_uv, track.uv, model, track.basis)
+    J = np.zeros((2 * n, COL_TJ + 6 * k + (1 if use_td else 0)), order="F")
+    J[:, :COL_TJ] = p.J[:, :COL_TJ]
+    if use_td:
+        J[:, -1] = p.J[:, -1]
+    for i, t in enumerate(track.target):
+        block = p.J[2 * i:2 * i + 2, COL_TJ + 6 * i:COL_TJ + 6 * i + 6] @ track.ad_inv
+        c0 = 7 if t == 0 else COL_TJ + 6 * (t - 1)   # anchor block or target block
+        J[2 * i:2 * i + 2, c0:c0 + 6] += block
+    r = p.r.copy()
+    if robust is not None and robust.kind != "none":
+        reweight_blocks(r, J, sigma, robust)
+    return r.reshape(2 * n), J
+
+
+def stereo_factor(track: StereoTrack, lam_key: int, extrinsic_key: int, sigma: float,
+                  model: str = "pinhole", robust: RobustKernel | None = None,
+                  td_key: int | None = None, health: FactorHealth | None = None
+                  ) -> gtsam.CustomFactor:
+    """``gtsam.CustomFactor`` of a landmark's right-camera observations."""
+    check_model(model)
+    keys = stereo_keys(track, lam_key, extrinsic_key, td_key)
+    use_td = td_key is not None
+    kinds = [1, "pose3", "pose3"] + ["pose3"] * len(track.keys) + ([1] if use_td else [])
+    noise = gtsam.noiseModel.Isotropic.Sigma(2 * track.n, float(sigma))
+
+    def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
+        return stereo_residual(args, track, model, sigma, robust, use_td)
+
+    return custom_factor(noise, keys, kinds, fn, health)

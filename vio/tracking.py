@@ -1,0 +1,56 @@
+"""The image stage: a ``FramePacket`` with images -> the same packet with features.
+
+Wraps the KLT front end (``vio.frontend``): loads the images lazily, predicts the
+LK search from the gyro rotation since the previous frame, and attaches cam0
+features with their cam1 matches (``FeatureFrame.right_uv``) for the backend.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+
+from vio.frontend import Frontend
+from vio.frontend.camera import camera_rotation
+from vio.frontend.config import FrontendConfig
+from vio.io.euroc import read_image
+from vio.io.types import CameraCalib, ImuData
+from vio.sync import FramePacket
+
+
+def gyro_rotation(imu: ImuData) -> np.ndarray:
+    """Body rotation ``R_b(t0)_b(t1)`` (3, 3) over a packet's IMU segment (raw gyro,
+    midpoint rule); bias-free, which is ample for an LK initial guess."""
+    R = gtsam.Rot3()
+    dt = np.diff(imu.t_ns) * 1e-9
+    w = 0.5 * (imu.gyro[1:] + imu.gyro[:-1])
+    for k in range(dt.shape[0]):
+        R = R.compose(gtsam.Rot3.Expmap(w[k] * dt[k]))
+    return R.matrix()
+
+
+class ImageStage:
+    """Adds ``FeatureFrame`` observations to image packets (mono or stereo)."""
+
+    def __init__(self, cam0: CameraCalib, cam1: CameraCalib | None,
+                 cfg: FrontendConfig | None = None) -> None:
+        self.cam0 = cam0
+        self.stereo = cam1 is not None
+        self.frontend = Frontend(cam0, cam1, cfg)
+        self._T_b_c = cam0.T_b_c.matrix()
+        self._first = True
+
+    def __call__(self, pkt: FramePacket) -> FramePacket:
+        imgs = pkt.images or tuple(read_image(p) for p in pkt.image_files[:2 if self.stereo else 1])
+        if not imgs:
+            raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
+        R = None if self._first else camera_rotation(gyro_rotation(pkt.imu), self._T_b_c)
+        self._first = False
+        tf = self.frontend.process(pkt.t_ns, imgs[0], imgs[1] if self.stereo and len(imgs) > 1 else None, R)
+        fr = tf.to_feature_frame(0)
+        if self.stereo:
+            fr = dataclasses.replace(fr, right_uv=np.asarray(tf.right_uv, float).copy(),
+                                     right_velocity=np.asarray(tf.right_velocity, float).copy())
+        return dataclasses.replace(pkt, features=fr)
