@@ -83,7 +83,8 @@ class LandmarkManager:
         self._motion_cache: dict = {}
         t = self.est.kf_t[k] * 1e-9
         leave = set(leaving)
-        n_active = self.n_active()
+        # the cap counts live landmarks only (dead ones wait for marginalization)
+        n_active = sum(1 for tr in self.tracks.values() if tr.key is not None and k in tr.obs)
         # longest tracks first, so the landmark cap keeps the best-constrained ones
         for lid in sorted(self.tracks, key=lambda i: -len(self.tracks[i].obs)):
             tr = self.tracks[lid]
