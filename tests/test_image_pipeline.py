@@ -1,0 +1,66 @@
+"""Images -> KLT front end -> backend, on a short rendered stereo sequence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vio.evaluation import evaluate
+from vio.io.euroc import load_euroc
+from vio.pipeline import PipelineConfig
+from vio.run import resolve_mode, run_dataset
+
+
+@pytest.fixture(scope="module")
+def sim_stereo(tmp_path_factory):
+    from vio.sim import simulate
+    from vio.sim.config import SimConfig
+    root = tmp_path_factory.mktemp("sim_stereo")
+    simulate(root, SimConfig(seconds=5.0, seed=2, image_scale=0.5, td_s=0.0))
+    return load_euroc(root)
+
+
+@pytest.mark.slow
+def test_stereo_images_end_to_end(sim_stereo):
+    """5 s of rendered stereo (starts moving): 1.1 cm ATE measured; bound 3 cm."""
+    res = run_dataset(sim_stereo, PipelineConfig(), mode="stereo")
+    assert res.recoveries == 0 and len(res.outputs) > 60
+    e = evaluate(*res.arrays(), sim_stereo.groundtruth)
+    assert e.ate_rmse < 0.03
+    # stereo depth puts landmarks in the graph at the first keyframes
+    assert res.outputs[0].n_landmarks > 0 or res.outputs[1].n_landmarks > 0
+
+
+@pytest.mark.slow
+def test_mono_images_end_to_end(sim_stereo):
+    """Same sequence, cam0 only: 3.4 cm ATE measured; bound 6 cm."""
+    res = run_dataset(sim_stereo, PipelineConfig(), mode="mono")
+    e = evaluate(*res.arrays(), sim_stereo.groundtruth)
+    assert res.recoveries == 0 and e.ate_rmse < 0.06
+
+
+def test_mode_resolution_errors(sim_stereo, tmp_path):
+    assert resolve_mode(sim_stereo, "auto") == "stereo"
+    with pytest.raises(ValueError, match="no cam0/features.csv"):
+        resolve_mode(sim_stereo, "features")
+    with pytest.raises(ValueError, match="not available"):
+        resolve_mode(sim_stereo, "direct")
+
+
+def test_image_stage_on_real_static_stereo():
+    """Real EuRoC images while the vehicle is still: stereo matches exist and the
+    attached right observations lie near the same epipolar geometry."""
+    from conftest import shared
+    from vio.sync import packets
+    from vio.tracking import ImageStage
+    d = load_euroc(shared("euroc_V1_01_static_stereo"))
+    stage = ImageStage(d.cam0.calib, d.cam1.calib)
+    files = list(zip(d.cam0.files[:5], d.cam1.files[:5]))
+    n_right = []
+    for pkt in packets(d.imu, d.cam0.t_ns[:5], image_files=files):
+        fr = stage(pkt).features
+        ok = np.isfinite(fr.right_uv).all(axis=1)
+        n_right.append(int(ok.sum()))
+        # rectification-free sanity: right points are shifted left (positive depth)
+        assert np.median(fr.uv[ok, 0] - fr.right_uv[ok, 0]) > 0
+    assert min(n_right) > 30
