@@ -49,7 +49,9 @@ class VisionConfig:
     ``td_velocity``: image velocities multiplying td in the td factor, "predicted"
     from the state (velocity, gyro, depth) or "measured" by the front end; a
     prediction further than ``td_velocity_gate`` (1/s) from the measurement is
-    replaced by the measurement. ``max_landmarks``: cap on landmarks in the window
+    replaced by the measurement; a velocity above ``td_velocity_max`` (1/s, ~70 px per
+    frame at EuRoC's 20 Hz) is a mistrack or a bad depth and gets no td term, since a
+    single such observation would otherwise dominate the td estimate. ``max_landmarks``: cap on landmarks in the window
     (new tracks wait while it is reached; Python factor callbacks dominate the cost).
     ``kernel``: robust kernel per observation; ``outlier_px``: landmarks whose worst
     reprojection error exceeds it after an update are removed."""
@@ -58,6 +60,7 @@ class VisionConfig:
     use_td: bool = True
     td_velocity: Literal["predicted", "measured"] = "predicted"
     td_velocity_gate: float = 5.0
+    td_velocity_max: float = 3.0
     pixel_sigma: float = 1.0
     kernel: Literal["huber", "cauchy", "none"] = "huber"
     kernel_k: float = 1.345

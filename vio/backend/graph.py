@@ -87,9 +87,14 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
     def offset(o) -> float:
         return 0.0 if not np.isfinite(o.row) else o.row / rows * readout
 
+    vmax = cfg.vision.td_velocity_max
+
+    def vel(o) -> np.ndarray:  # implausible velocities would dominate td: drop their td term
+        return o.velocity if np.linalg.norm(o.velocity) <= vmax else np.zeros(2)
+
     lm = make_track(X(frames[0]), a.uv, [X(f) for f in frames[1:]],
                     np.array([o.uv for o in rest]),
-                    anchor_vel=a.velocity, vel=np.array([o.velocity for o in rest]),
+                    anchor_vel=vel(a), vel=np.array([vel(o) for o in rest]),
                     anchor_offset=offset(a), offset=np.array([offset(o) for o in rest]))
     v = cfg.vision
     kernel = None if v.kernel == "none" else RobustKernel(v.kernel, v.kernel_k)
@@ -120,10 +125,15 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma:
     def offset(o) -> float:
         return 0.0 if not np.isfinite(o.row) else o.row / rows * readout
 
+    vmax = cfg.vision.td_velocity_max
+
+    def clip(v: np.ndarray) -> np.ndarray:
+        return v if np.linalg.norm(v) <= vmax else np.zeros(2)
+
     st = make_stereo_track(X(frames[0]), a.uv, [X(f) for f in sf],
                            np.array([track.obs[f].right_uv for f in sf]), C,
-                           anchor_vel=a.velocity,
-                           vel=np.array([track.obs[f].right_velocity for f in sf]),
+                           anchor_vel=clip(a.velocity),
+                           vel=np.array([clip(track.obs[f].right_velocity) for f in sf]),
                            anchor_offset=offset(a),
                            offset=np.array([offset(track.obs[f]) for f in sf]))
     v = cfg.vision

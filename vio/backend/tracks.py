@@ -191,6 +191,8 @@ class LandmarkManager:
                 # keep the measurement where the prediction is implausible (bad depth)
                 if np.linalg.norm(p - o.velocity) < vc.td_velocity_gate:
                     vel = p
+            if not np.linalg.norm(vel) <= vc.td_velocity_max:
+                vel = np.zeros(2)  # a spike would dominate td (huge leverage): drop its td term
             obs[f] = Obs(o.uv, vel, o.row, o.right_uv, o.right_velocity)
         return Track(tr.lid, obs, tr.key, tr.anchor)
 
