@@ -14,16 +14,40 @@ from vio.io.types import GroundTruth
 def interpolate_pose(gt: GroundTruth, t_ns: int) -> gtsam.Pose3:
     """``T_w_b`` at ``t_ns``: linear in position, slerp in rotation. ``ValueError``
     outside the trajectory's span."""
-    i = int(np.searchsorted(gt.t_ns, t_ns, side="right")) - 1
-    if i < 0 or t_ns > gt.t_ns[-1]:
+    if t_ns < gt.t_ns[0] or t_ns > gt.t_ns[-1]:
         raise ValueError(f"t={t_ns} outside the trajectory [{gt.t_ns[0]}, {gt.t_ns[-1]}]")
-    if i == len(gt) - 1 or gt.t_ns[i] == t_ns:
-        return gt.pose(i)
-    s = float(t_ns - gt.t_ns[i]) / float(gt.t_ns[i + 1] - gt.t_ns[i])
-    R0, R1 = gt.pose(i).rotation(), gt.pose(i + 1).rotation()
-    R = R0.compose(gtsam.Rot3.Expmap(s * gtsam.Rot3.Logmap(R0.between(R1))))
-    p = (1 - s) * gt.p_w[i] + s * gt.p_w[i + 1]
-    return gtsam.Pose3(R, p)
+    p, R = interpolate_poses(gt.t_ns, gt.p_w, gt.q_wxyz, np.array([t_ns], dtype=np.int64))
+    return gtsam.Pose3(gtsam.Rot3(R[0]), p[0])
+
+
+def interpolate_poses(gt_t: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray,
+                   t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``T_w_b`` at times ``t_ns`` (K,) inside the span of ``gt_t``: (p_w (K, 3), R_w_b (K, 3, 3)).
+
+    Position linear, rotation slerp between the bracketing rows."""
+    i = np.clip(np.searchsorted(gt_t, t_ns, "right") - 1, 0, len(gt_t) - 2)
+    a = ((t_ns - gt_t[i]) / (gt_t[i + 1] - gt_t[i]))[:, None]
+    pos = p[i] + a * (p[i + 1] - p[i])
+    q0, q1 = q_wxyz[i], q_wxyz[i + 1]
+    d = np.sum(q0 * q1, axis=1, keepdims=True)
+    q1 = np.where(d < 0, -q1, q1)
+    th = np.arccos(np.clip(np.abs(d), -1.0, 1.0))
+    s = np.sin(th)
+    small = s < 1e-12
+    s = np.where(small, 1.0, s)
+    w0 = np.where(small, 1 - a, np.sin((1 - a) * th) / s)
+    w1 = np.where(small, a, np.sin(a * th) / s)
+    q = w0 * q0 + w1 * q1
+    return pos, quat_to_rot(q / np.linalg.norm(q, axis=1, keepdims=True))
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions (K, 4) wxyz -> rotation matrices (K, 3, 3)."""
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def interpolate_vector(t_src: np.ndarray, values: np.ndarray, t_ns: int) -> np.ndarray:

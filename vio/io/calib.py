@@ -72,6 +72,15 @@ def read_camera_yaml(path: Path, name: str = "cam0") -> CameraCalib:
                        float(data.get("rate_hz", 20.0)), line_time, name)
 
 
+def load_camera(path: Path, name: str = "cam0") -> CameraCalib:
+    """``read_camera_yaml`` reporting problems as ``DataError`` (data-loading contexts)."""
+    from vio.errors import DataError
+    try:
+        return read_camera_yaml(path, name)
+    except ConfigError as exc:
+        raise DataError(path, str(exc).split(": ", 1)[-1]) from None
+
+
 def read_imu_yaml(path: Path) -> ImuCalib:
     """IMU noise densities and random walks from an EuRoC ``imu0/sensor.yaml``."""
     data = read_yaml(path)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from vio.errors import ConfigError, DataError
-from vio.io.calib import read_camera_yaml, read_imu_yaml
+from vio.io.calib import load_camera, read_imu_yaml
 from vio.io.csvio import check_increasing, read_numeric, read_text_lines
 from vio.io.features import read_features
 from vio.io.types import CameraStream, FeatureFrame, GroundTruth, ImuCalib, ImuData
@@ -136,7 +136,7 @@ def read_camera(cam_dir: Path, imu: ImuData, options: LoadOptions, warnings: lis
         if required:
             raise DataError(cam_dir, "camera folder not found")
         return None, none
-    calib = _calib(lambda p: read_camera_yaml(p, cam_dir.name), cam_dir / "sensor.yaml")
+    calib = load_camera(cam_dir / "sensor.yaml", cam_dir.name)
     csv = cam_dir / "data.csv"
     if not csv.is_file():  # calibration only (e.g. IMU + ground-truth folders)
         return CameraStream(calib, none), none

@@ -22,8 +22,9 @@ import numpy as np
 import yaml
 
 from vio.config import to_dict
-from vio.errors import ConfigError, DataError
-from vio.io.calib import read_camera_yaml
+from vio.errors import DataError
+from vio.io.calib import load_camera
+from vio.trajectory import interpolate_poses
 from vio.io.csvio import NumericTable, check_increasing, read_numeric, read_text_lines
 from vio.io.euroc import find_mav0
 from vio.io.types import CameraCalib
@@ -164,44 +165,6 @@ def read_groundtruth(mav0: Path) -> tuple[_Table, np.ndarray, np.ndarray, bool]:
         raise DataError(tab.table.path, f"quaternion norm {norm[bad[0], 0]:.4f} is not 1",
                         int(tab.table.lines[bad[0]]))
     return tab, p, q / norm, not csv.is_file()
-
-
-def read_camera(path: Path) -> CameraCalib:
-    """cam0 ``sensor.yaml`` (T_BS = T_b_c, intrinsics, resolution, distortion)."""
-    try:
-        return read_camera_yaml(path)
-    except ConfigError as exc:
-        raise DataError(path, str(exc).split(": ", 1)[-1]) from None
-
-
-def interpolate_gt(gt_t: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray,
-                   t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """T_w_b at times ``t_ns`` (K,) inside the GT span: (p_w (K, 3), R_w_b (K, 3, 3)).
-
-    Position linear, rotation slerp between the bracketing rows."""
-    i = np.clip(np.searchsorted(gt_t, t_ns, "right") - 1, 0, len(gt_t) - 2)
-    a = ((t_ns - gt_t[i]) / (gt_t[i + 1] - gt_t[i]))[:, None]
-    pos = p[i] + a * (p[i + 1] - p[i])
-    q0, q1 = q_wxyz[i], q_wxyz[i + 1]
-    d = np.sum(q0 * q1, axis=1, keepdims=True)
-    q1 = np.where(d < 0, -q1, q1)
-    th = np.arccos(np.clip(np.abs(d), -1.0, 1.0))
-    s = np.sin(th)
-    small = s < 1e-12
-    s = np.where(small, 1.0, s)
-    w0 = np.where(small, 1 - a, np.sin((1 - a) * th) / s)
-    w1 = np.where(small, a, np.sin(a * th) / s)
-    q = w0 * q0 + w1 * q1
-    return pos, quat_to_rot(q / np.linalg.norm(q, axis=1, keepdims=True))
-
-
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions (K, 4) wxyz -> rotation matrices (K, 3, 3)."""
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def _box_faces(lo: np.ndarray, hi: np.ndarray, inward: bool, bottom: bool = True):
@@ -400,7 +363,7 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     """Generate a feature-track dataset from ``src`` (a folder holding ``mav0/`` or the
     ``mav0`` folder itself, with imu0, ground truth and cam0/sensor.yaml) into ``out/mav0``."""
     src, out = find_mav0(src), Path(out)
-    cam = read_camera(src / "cam0" / "sensor.yaml")
+    cam = load_camera(src / "cam0" / "sensor.yaml")
     imu = _read(src / "imu0" / "data.csv", 6)
     gt, gt_p, gt_q, gt_tum = read_groundtruth(src)
     td = int(round(cfg.td_s * 1e9))
@@ -411,7 +374,7 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     seeds = np.random.SeedSequence(cfg.seed).spawn(4)
     rng_room, rng_track, rng_noise, rng_out = (np.random.default_rng(s) for s in seeds)
     pts, nrm = make_room(gt_p, cfg, rng_room)
-    p_w_b, R_w_b = interpolate_gt(gt.t_ns, gt_p, gt_q, t_ns + td)
+    p_w_b, R_w_b = interpolate_poses(gt.t_ns, gt_p, gt_q, t_ns + td)
     R_b_c, t_b_c = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
     R_w_c, p_w_c = R_w_b @ R_b_c, p_w_b + R_w_b @ t_b_c
     frame, point, ids, uv_true, px, n_vis = _track(cfg, cam, pts, nrm, R_w_c, p_w_c, rng_track)
