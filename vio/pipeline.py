@@ -141,7 +141,8 @@ class Pipeline:
         self._init_buf.append(pkt)
         imu, span = self._window_imu(ic.static_window_s)
         if span >= ic.static_window_s - 1e-3 and self._still():
-            self._start(static_init(imu, pkt.t_ns), pkt)
+            if not self._start(static_init(imu, pkt.t_ns), pkt):
+                return None
             self._init_buf = []
             return self._emit(pkt, True, True, t0, kf=True)
         buf = self._init_buf
@@ -154,20 +155,29 @@ class Pipeline:
             self._init_buf = [p for p in buf if p.t_ns >= keep]
             return None
         self._init_buf = []
-        self._start(res.state, buf[0])
+        if not self._start(res.state, buf[0]):
+            return None
         out = None
         for p in buf[1:]:
             out = self._step(p, t0)
         return out
 
-    def _start(self, state, pkt: FramePacket) -> None:
-        self.est.initialize(state)
+    def _start(self, state, pkt: FramePacket) -> bool:
+        """Initialize the estimator; False (and still uninitialized) if the solver refuses."""
+        try:
+            self.est.initialize(state)
+        except RuntimeError as exc:
+            log.error("initialization at t=%d failed (%s); will retry", pkt.t_ns,
+                      str(exc).splitlines()[0][:120])
+            self.est.smoother = None
+            return False
         self.est.kf_gyro[0] = pkt.imu.gyro[-1]
         self.est.lm.observe(0, self._features(pkt))
         self._kf_features, self._kf_t = pkt.features, pkt.t_ns
         self.n_keyframes = 1
         log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,
                  np.round(state.bias.gyroscope(), 4))
+        return True
 
     def _is_keyframe(self, pkt: FramePacket) -> bool:
         kc = self.cfg.backend.keyframe

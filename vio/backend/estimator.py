@@ -74,6 +74,7 @@ class Estimator:
         p.setFactorization(s.factorization)
         p.setRelinearizeThreshold(s.relinearize_threshold)
         p.relinearizeSkip = s.relinearize_skip
+        p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
         # iSAM2 skips updating variables whose change is below the wildfire threshold
         # (default 1e-3): td (seconds) then never moves; see SolverConfig.wildfire_threshold
         gn = gtsam.ISAM2GaussNewtonParams()
@@ -84,21 +85,25 @@ class Estimator:
     def initialize(self, state: InitialState, T_b_c: gtsam.Pose3 | None = None,
                    td_s: float | None = None) -> None:
         """Start the window at ``state`` (keyframe 0)."""
+        self._restart(0, state, self.cam.T_b_c if T_b_c is None else T_b_c,
+                      self.td0 if td_s is None else td_s, None)
+
+    def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
+                 pose_sigmas: np.ndarray | None) -> None:
+        """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td."""
         self.smoother = self._new_smoother()
-        self.k = 0
-        self.kf_t = {0: state.t_ns}
-        T_b_c = self.cam.T_b_c if T_b_c is None else T_b_c
-        td = self.td0 if td_s is None else td_s
-        g = graph.state_priors(0, state, self.cfg.init)
+        self.k = k
+        self.kf_t = {k: state.t_ns}
+        g = graph.state_priors(k, state, self.cfg.init, pose_sigmas)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
         v = gtsam.Values()
-        v.insert(X(0), state.T_w_b)
-        v.insert(V(0), state.v_w)
-        v.insert(B(0), state.bias)
+        v.insert(X(k), state.T_w_b)
+        v.insert(V(k), state.v_w)
+        v.insert(B(k), state.bias)
         v.insert(graph.EXTRINSIC, T_b_c)
         v.insert(graph.TD, np.array([td]))
         t = state.t_ns * 1e-9
-        self.smoother.update(g, v, {X(0): t, V(0): t, B(0): t, graph.EXTRINSIC: t, graph.TD: t})
+        self.smoother.update(g, v, {X(k): t, V(k): t, B(k): t, graph.EXTRINSIC: t, graph.TD: t})
         self.values = self.smoother.calculateEstimate()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, state.bias)
 
@@ -187,22 +192,13 @@ class Estimator:
         good = self.values
         T_b_c = good.atPose3(graph.EXTRINSIC)
         td = float(good.atVector(graph.TD)[0])
-        state = InitialState(t_ns, pred.pose(), pred.velocity(), b0, "recovery")
+        T, v, b = pred.pose(), pred.velocity(), b0
+        if not (np.all(np.isfinite(T.matrix())) and np.all(np.isfinite(v))
+                and np.all(np.isfinite(b.vector()))):   # the prediction blew up: hold still
+            T, v, b = good.atPose3(X(k0)), np.zeros(3), gtsam.imuBias.ConstantBias()
         self.lm.reset()
-        self.smoother = self._new_smoother()
         sig = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
-        g = graph.state_priors(k1, state, self.cfg.init, sig)
-        g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
-        v = gtsam.Values()
-        v.insert(X(k1), state.T_w_b)
-        v.insert(V(k1), state.v_w)
-        v.insert(B(k1), state.bias)
-        v.insert(graph.EXTRINSIC, T_b_c)
-        v.insert(graph.TD, np.array([td]))
-        t = t_ns * 1e-9
-        self.kf_t = {k1: t_ns}
-        self.smoother.update(g, v, {X(k1): t, V(k1): t, B(k1): t, graph.EXTRINSIC: t, graph.TD: t})
-        self.values = self.smoother.calculateEstimate()
+        self._restart(k1, InitialState(t_ns, T, v, b, "recovery"), T_b_c, td, sig)
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
