@@ -1,0 +1,320 @@
+"""The benchmark suite: ours and the GTSAM-native baseline side by side, in one command.
+
+    python benchmarks/run_all.py [--quick] [--out benchmarks/results] [--only accuracy,micro,...]
+
+Sections: ``accuracy`` (every runnable mode on the dataset registry, ours then the
+baseline on our keyframes), ``micro`` (bench_factor_cost.py, bench_photometric.py),
+``scaling`` (time per frame vs features and window length), ``memory`` (the soak
+run). Each run is a subprocess (``--worker``) so its peak RSS is its own; ground
+truth is read only here, in the parent. Writes ``OUT/results.json`` and
+``OUT/results.md`` (via report.py); ``--readme`` also refreshes the README section.
+Generated datasets are cached in ``~/.cache/vio-bench`` ($VIO_BENCH_CACHE).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path[:0] = [str(ROOT), str(HERE)]
+
+import datasets as ds  # noqa: E402
+
+SECTIONS = ("accuracy", "micro", "scaling", "memory")
+
+
+# ------------------------------------------------------------------ worker side
+def rss_mb() -> float:
+    """Current resident set size of this process (MB), from /proc."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def peak_rss_mb() -> float:
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def pipeline_config(overrides: dict | None = None):
+    """``PipelineConfig`` defaults with dotted-path overrides, e.g.
+    ``{"backend.solver.lag_s": 4.0}``."""
+    from vio.pipeline import PipelineConfig
+
+    def replace(obj, path: list[str], value):
+        if len(path) == 1:
+            return dataclasses.replace(obj, **{path[0]: value})
+        return dataclasses.replace(obj, **{path[0]: replace(getattr(obj, path[0]), path[1:], value)})
+    cfg = PipelineConfig()
+    for key, value in (overrides or {}).items():
+        cfg = replace(cfg, key.split("."), value)
+    return cfg
+
+
+def worker(job: dict) -> dict:
+    """Run one system on one dataset (in this process); arrays for the parent."""
+    if job["system"] == "soak":
+        from memory_soak import soak_worker
+        return soak_worker(job)
+    from baseline_gtsam import Schedule, record_schedule, run_baseline
+    from vio.io.euroc import load_euroc
+    data = load_euroc(job["data"])
+    cfg = pipeline_config(job.get("overrides"))
+    rss0 = rss_mb()
+    if job["system"] == "ours":
+        res, sched = record_schedule(data, cfg, job.get("max_frames"))
+        Path(job["schedule"]).write_text(json.dumps(sched.to_json()))
+    else:
+        sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
+        res = run_baseline(data, sched, cfg, max_frames=job.get("max_frames"))
+    t, p, q = res.arrays()
+    last = res.outputs[-1] if res.outputs else None
+    return {"t_ns": t.tolist(), "p": p.tolist(), "q": q.tolist(),
+            "frame_ms": [o.seconds * 1e3 for o in res.outputs],
+            "n_landmarks": [o.n_landmarks for o in res.outputs],
+            "wall_s": res.wall_s, "data_s": res.data_s, "frames_in": res.frames_in,
+            "keyframes": res.keyframes, "recoveries": res.recoveries,
+            "td_s": None if last is None else last.td_s,
+            "T_b_c": None if last is None else last.T_b_c.matrix().tolist(),
+            "T_b_c_calib": data.cam0.calib.T_b_c.matrix().tolist(),
+            "estimate_td": cfg.backend.calib.estimate_td,
+            "estimate_extrinsic": cfg.backend.calib.estimate_extrinsic,
+            "rss_start_mb": rss0, "peak_rss_mb": peak_rss_mb()}
+
+
+# ------------------------------------------------------------------ parent side
+def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
+    """Run ``worker(job)`` in a fresh interpreter; ``{"error": ...}`` on failure."""
+    with tempfile.TemporaryDirectory(prefix="vio-bench-") as tmp:
+        job = {**job, "result": str(Path(tmp) / "result.json")}
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(job)]
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            return {"error": f"timeout after {timeout_s:.0f} s"}
+        if proc.returncode != 0 or not Path(job["result"]).exists():
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+            return {"error": f"exit {proc.returncode}: " + " | ".join(tail)}
+        return json.loads(Path(job["result"]).read_text())
+
+
+def _stats(x: list[float]) -> dict:
+    a = np.asarray(x, float)
+    if a.size == 0:
+        return {"mean": None, "p50": None, "p95": None, "max": None}
+    return {"mean": float(a.mean()), "p50": float(np.percentile(a, 50)),
+            "p95": float(np.percentile(a, 95)), "max": float(a.max())}
+
+
+def metrics(out: dict, gt, td_true_s: float | None) -> dict:
+    """Accuracy, timing, memory and calibration figures of one worker output."""
+    import gtsam
+    from vio.evaluation import evaluate
+    if "error" in out:
+        return {"error": out["error"]}
+    m: dict = {"frames": len(out["t_ns"]), "keyframes": out["keyframes"],
+               "recoveries": out["recoveries"], "frame_ms": _stats(out["frame_ms"]),
+               "rtf": out["data_s"] / out["wall_s"] if out["wall_s"] > 0 else None,
+               "wall_s": out["wall_s"], "peak_rss_mb": out["peak_rss_mb"],
+               "rss_start_mb": out["rss_start_mb"],
+               "landmarks_p50": float(np.median(out["n_landmarks"])) if out["n_landmarks"] else None}
+    if gt is not None and len(out["t_ns"]) > 3:
+        try:
+            e = evaluate(np.array(out["t_ns"], np.int64), np.array(out["p"]), np.array(out["q"]), gt)
+            m.update(ate_rmse=e.ate_rmse, ate_pct=100 * e.ate_rmse / max(e.path_length, 1e-9),
+                     rpe_trans=e.rpe_trans_rmse, rpe_rot_deg=e.rpe_rot_rmse_deg,
+                     path_m=e.path_length, n_matched=e.n_matched)
+        except ValueError as exc:
+            m["error"] = f"evaluation: {exc}"
+    if out["estimate_td"] and out["td_s"] is not None:
+        m["td_ms"] = out["td_s"] * 1e3
+        if td_true_s is not None:
+            m["td_err_ms"] = (out["td_s"] - td_true_s) * 1e3
+    if out["estimate_extrinsic"] and out["T_b_c"] is not None:
+        d = gtsam.Pose3(np.array(out["T_b_c_calib"])).between(gtsam.Pose3(np.array(out["T_b_c"])))
+        m["extrinsic_rot_err_deg"] = float(np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))))
+        m["extrinsic_trans_err_mm"] = float(np.linalg.norm(d.translation()) * 1e3)
+    return m
+
+
+def _ratio(a: dict, b: dict, key: str, sub: str | None = None) -> float | None:
+    x = a.get(key) if sub is None else (a.get(key) or {}).get(sub)
+    y = b.get(key) if sub is None else (b.get(key) or {}).get(sub)
+    return float(x / y) if x is not None and y else None
+
+
+def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
+    """Ours, then the baseline on our schedule; metrics of both and ratios."""
+    from vio.io.euroc import find_mav0, read_groundtruth
+    gt = read_groundtruth(find_mav0(path) / "state_groundtruth_estimate0")
+    with tempfile.TemporaryDirectory(prefix="vio-sched-") as tmp:
+        job = {"data": str(path), "schedule": str(Path(tmp) / "schedule.json"),
+               "max_frames": spec.max_frames, "overrides": overrides or {}}
+        ours = metrics(run_job({**job, "system": "ours"}), gt, spec.td_true_s)
+        base = (metrics(run_job({**job, "system": "baseline"}), gt, spec.td_true_s)
+                if "error" not in ours else {"error": "no schedule (ours failed)"})
+    row = {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin,
+           "td_true_ms": None if spec.td_true_s is None else spec.td_true_s * 1e3,
+           "overrides": overrides or {}, "ours": ours, "baseline": base,
+           "ratio": {"ate": _ratio(ours, base, "ate_rmse"),
+                     "time": _ratio(ours, base, "frame_ms", "mean")}}
+    log(f"  {spec.name:32s} ours {_brief(ours)} | baseline {_brief(base)}"
+        + (f" | td {ours['td_ms']:+.2f} ms" if "td_ms" in ours else ""))
+    return row
+
+
+def _brief(m: dict) -> str:
+    if "error" in m:
+        return f"FAILED ({m['error']})"
+    ate = "n/a" if m.get("ate_rmse") is None else f"{m['ate_rmse']:.3f}"
+    return f"ATE {ate} m {m['frame_ms']['mean'] or 0:.1f} ms/frame"
+
+
+def td_summary(rows: list[dict]) -> list[dict]:
+    """Raw td error per generated set, and the differential error of each td pair:
+    estimate(td = 5 ms tracks) - estimate(td = 0 twin) - 5 ms."""
+    by_name = {r["dataset"]: r for r in rows}
+    out = []
+    for r in rows:
+        twin = by_name.get(r["twin"]) if r["twin"] else None
+        if twin is None or "td_ms" not in r["ours"] or "td_ms" not in twin["ours"]:
+            continue
+        diff = r["ours"]["td_ms"] - twin["ours"]["td_ms"]
+        out.append({"group": r["group"], "td_true_ms": r["td_true_ms"], "td_est_ms": r["ours"]["td_ms"],
+                    "td0_est_ms": twin["ours"]["td_ms"], "raw_err_ms": r["ours"].get("td_err_ms"),
+                    "diff_ms": diff, "diff_err_ms": diff - r["td_true_ms"]})
+    return out
+
+
+def run_accuracy(quick: bool, log=print) -> dict:
+    specs, skipped = ds.registry(quick)
+    rows = []
+    for spec in specs:
+        path = ds.prepare(spec)
+        rows.append(compare(spec, path, log=log))
+    return {"runs": rows, "td": td_summary(rows), "skipped": skipped}
+
+
+# ------------------------------------------------------------------ micro-benchmarks
+_MICRO = {
+    "bench_factor_cost.py": {
+        "args_quick": ["--repeats", "3"],
+        "patterns": {r"^(a_naive|b_landmark\w*|c_generic)\s+\d+\s+([\d.]+)\s+([\d.]+)": "us_per_obs",
+                     r"^\s+(b_landmark|c_generic)\s+first update\s+([\d.]+) ms, relinearizing update\s+([\d.]+) ms":
+                         "isam2_ms"}},
+    "bench_photometric.py": {
+        "args_quick": ["--repeat", "2"],
+        "patterns": {r"^(GTSAM linearize|vectorized eval|TrackFrame|select_points|epipolar_search)[^:]*:\s+([\d.]+) ms":
+                     "ms"}},
+}
+
+
+def run_micro(quick: bool, log=print) -> dict:
+    """Run the existing micro-benchmarks as subprocesses and parse their key lines."""
+    out = {}
+    for script, spec in _MICRO.items():
+        cmd = [sys.executable, str(HERE / script)] + (spec["args_quick"] if quick else [])
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+        parsed: dict = {}
+        for line in proc.stdout.splitlines():
+            for pat, unit in spec["patterns"].items():
+                m = re.match(pat, line)
+                if m:
+                    vals = [float(v) for v in m.groups()[1:]]
+                    parsed[f"{m.group(1)} [{unit}]"] = vals
+        out[script] = {"returncode": proc.returncode, "seconds": time.perf_counter() - t0,
+                       "parsed": parsed, "stdout": proc.stdout.strip().splitlines()}
+        log(f"  {script}: exit {proc.returncode}, {len(parsed)} figures parsed")
+    return out
+
+
+# ------------------------------------------------------------------ entry
+def machine() -> dict:
+    import platform
+    from importlib import metadata
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+
+    def ver(p: str) -> str:
+        try:
+            return metadata.version(p)
+        except metadata.PackageNotFoundError:
+            return "n/a"
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip() != ""
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+            "gtsam": ver("gtsam"), "numpy": ver("numpy"), "platform": platform.platform(),
+            "commit": commit + ("+dirty" if dirty else "")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="small datasets (a few minutes)")
+    ap.add_argument("--out", type=Path, default=HERE / "results")
+    ap.add_argument("--only", default=",".join(SECTIONS), help=f"comma list of {SECTIONS}")
+    ap.add_argument("--readme", type=Path, help="README whose results section to refresh")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        job = json.loads(args.worker)
+        Path(job["result"]).write_text(json.dumps(worker(job)))
+        return 0
+    import report
+    import scaling
+    import memory_soak
+    sections = [s.strip() for s in args.only.split(",") if s.strip()]
+    bad = [s for s in sections if s not in SECTIONS]
+    if bad:
+        ap.error(f"unknown section(s) {bad}; choose from {SECTIONS}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    prev = args.out / "results.json"
+    if set(sections) != set(SECTIONS) and prev.exists():   # refresh some sections, keep the rest
+        results = json.loads(prev.read_text())
+        if results.get("quick") != args.quick:
+            ap.error(f"{prev} was written with quick={results.get('quick')}; use another --out")
+    results.update(machine=machine(), quick=args.quick, created=time.strftime("%Y-%m-%d %H:%M:%S"),
+                   cache=str(ds.cache_dir()))
+    runners = {"accuracy": run_accuracy, "micro": run_micro, "scaling": scaling.run_scaling,
+               "memory": memory_soak.run_soak}
+    for name in sections:
+        print(f"[{name}]", flush=True)
+        s0 = time.perf_counter()
+        results[name] = runners[name](args.quick, log=lambda m: print(m, flush=True))
+        results[name + "_seconds"] = time.perf_counter() - s0
+        (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    results["total_seconds"] = sum(results.get(s + "_seconds", 0.0) for s in SECTIONS)
+    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    md = report.render(results)
+    (args.out / "results.md").write_text(md)
+    print(f"wrote {args.out / 'results.json'} and {args.out / 'results.md'} "
+          f"({results['total_seconds'] / 60:.1f} min)")
+    if args.readme:
+        report.update_readme(args.readme, report.readme_section(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
