@@ -14,22 +14,19 @@ point ``p_w`` [m] and ``out/sim_truth.yaml`` records td, noise, seed and outlier
 
 from __future__ import annotations
 
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from vio.config import to_dict
 from vio.errors import DataError
 from vio.io.calib import load_camera
 from vio.trajectory import interpolate_poses
-from vio.io.csvio import NumericTable, check_increasing, read_numeric, read_text_lines
 from vio.io.euroc import find_mav0
 from vio.io.types import CameraCalib
+from vio.sim.tracks_io import read_groundtruth, read_table, write_outputs
 
-_GT_DIR = "state_groundtruth_estimate0"
 
 
 @dataclass(frozen=True)
@@ -118,53 +115,6 @@ class TrackGenResult:
     def track_lengths(self) -> np.ndarray:
         """Observations per landmark id (K,)."""
         return np.unique(self.landmark_id, return_counts=True)[1]
-
-
-@dataclass(frozen=True)
-class _Table:
-    """A parsed timestamped file plus its raw text, so excerpts copy rows verbatim."""
-
-    table: NumericTable
-    raw: list[str]
-
-    @property
-    def t_ns(self) -> np.ndarray:
-        return self.table.t_ns
-
-    def write_slice(self, dst: Path, t0_ns: int, t1_ns: int, pad: int = 0) -> None:
-        """Header lines plus the data rows with ``t0_ns <= t <= t1_ns`` (and ``pad`` more each side)."""
-        nos = self.table.lines
-        i0 = max(int(np.searchsorted(self.t_ns, t0_ns, "left")) - pad, 0)
-        i1 = min(int(np.searchsorted(self.t_ns, t1_ns, "right")) + pad, len(nos))
-        rows = self.raw[: nos[0] - 1] + [self.raw[n - 1] for n in nos[i0:i1]]
-        dst.write_text("".join(r + "\n" for r in rows))
-
-
-def _read(path: Path, n_values: int | tuple[int, ...], tum: bool = False) -> _Table:
-    table = read_numeric(path, n_values, delimiter=None if tum else ",", time_in_seconds=tum)
-    check_increasing(table)
-    if len(table.t_ns) < 2:
-        raise DataError(path, "fewer than 2 data rows")
-    return _Table(table, read_text_lines(path))
-
-
-def read_groundtruth(mav0: Path) -> tuple[_Table, np.ndarray, np.ndarray, bool]:
-    """Body poses in the world: (table, p_w (N, 3) m, q_wxyz (N, 4) unit, is_tum)."""
-    csv, tum = mav0 / _GT_DIR / "data.csv", mav0 / _GT_DIR / "groundtruth_tum.txt"
-    if csv.is_file():
-        tab = _read(csv, (7, 16))
-        p, q = tab.table.values[:, 0:3], tab.table.values[:, 3:7]
-    elif tum.is_file():
-        tab = _read(tum, 7, tum=True)
-        p, q = tab.table.values[:, 0:3], tab.table.values[:, [6, 3, 4, 5]]  # TUM xyzw -> wxyz
-    else:
-        raise DataError(mav0 / _GT_DIR, "no data.csv or groundtruth_tum.txt")
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    bad = np.flatnonzero(np.abs(norm[:, 0] - 1.0) > 1e-2)
-    if bad.size:
-        raise DataError(tab.table.path, f"quaternion norm {norm[bad[0], 0]:.4f} is not 1",
-                        int(tab.table.lines[bad[0]]))
-    return tab, p, q / norm, not csv.is_file()
 
 
 def _box_faces(lo: np.ndarray, hi: np.ndarray, inward: bool, bottom: bool = True):
@@ -336,35 +286,12 @@ def _frame_stamps(cfg: TrackGenConfig, gt_t: np.ndarray, imu_t: np.ndarray, td: 
     return np.arange(t0, hi + 1, step, dtype=np.int64) if hi >= t0 else np.zeros(0, np.int64)
 
 
-def _write_outputs(src: Path, out: Path, res: TrackGenResult, gt: _Table, gt_tum: bool, imu: _Table,
-                   truth: dict) -> None:
-    m = out / "mav0"
-    for d in ("cam0", "imu0", _GT_DIR):
-        (m / d).mkdir(parents=True, exist_ok=True)
-    for rel in ("cam0/sensor.yaml", "imu0/sensor.yaml", f"{_GT_DIR}/sensor.yaml", "body.yaml"):
-        if (src / rel).exists():
-            shutil.copyfile(src / rel, m / rel)
-    t = res.t_ns
-    (m / "cam0/data.csv").write_text("#timestamp [ns],filename\n" + "".join(f"{s},{s}.png\n" for s in t))
-    rows = "".join(f"{t[f]},{f},{i},{u:.12f},{v:.12f}\n" for f, i, (u, v) in
-                   zip(res.frame_idx.tolist(), res.landmark_id.tolist(), res.uv.tolist()))
-    (m / "cam0/features.csv").write_text("timestamp_ns,frame_idx,landmark_id,u_norm,v_norm\n" + rows)
-    margin = int(round(truth["config"]["imu_margin_s"] * 1e9))
-    t_lo, t_hi = min(t[0], t[0] + res.td_ns) - margin, max(t[-1], t[-1] + res.td_ns) + margin
-    imu.write_slice(m / "imu0/data.csv", t_lo, t_hi)
-    gt.write_slice(m / _GT_DIR / ("groundtruth_tum.txt" if gt_tum else "data.csv"), t_lo, t_hi, pad=1)
-    lm = zip(res.landmark_ids.tolist(), res.landmark_p_w.tolist())
-    (out / "landmarks.csv").write_text("landmark_id,p_w_x,p_w_y,p_w_z\n" + "".join(
-        f"{i},{x!r},{y!r},{z!r}\n" for i, (x, y, z) in lm))  # repr: exact float round trip
-    (out / "sim_truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None))
-
-
 def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult:
     """Generate a feature-track dataset from ``src`` (a folder holding ``mav0/`` or the
     ``mav0`` folder itself, with imu0, ground truth and cam0/sensor.yaml) into ``out/mav0``."""
     src, out = find_mav0(src), Path(out)
     cam = load_camera(src / "cam0" / "sensor.yaml")
-    imu = _read(src / "imu0" / "data.csv", 6)
+    imu = read_table(src / "imu0" / "data.csv", 6)
     gt, gt_p, gt_q, gt_tum = read_groundtruth(src)
     td = int(round(cfg.td_s * 1e9))
     t_ns = _frame_stamps(cfg, gt.t_ns, imu.t_ns, td)
@@ -398,5 +325,5 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
                      for f, i, k in zip(frame[kind > 0], ids[kind > 0], kind[kind > 0])],
         "config": to_dict(cfg),
     }
-    _write_outputs(src, out, res, gt, gt_tum, imu, truth)
+    write_outputs(src, out, res, gt, gt_tum, imu, truth)
     return res
