@@ -193,12 +193,19 @@ class Estimator:
         T_b_c = good.atPose3(graph.EXTRINSIC)
         td = float(good.atVector(graph.TD)[0])
         T, v, b = pred.pose(), pred.velocity(), b0
-        if not (np.all(np.isfinite(T.matrix())) and np.all(np.isfinite(v))
-                and np.all(np.isfinite(b.vector()))):   # the prediction blew up: hold still
+        sane = (np.all(np.isfinite(T.matrix())) and np.all(np.isfinite(v)) and np.all(np.isfinite(b.vector()))
+                and np.linalg.norm(v) < 50.0 and np.linalg.norm(T.translation()) < 1e5)
+        if not sane:   # the prediction blew up: hold still at the last good pose
             T, v, b = good.atPose3(X(k0)), np.zeros(3), gtsam.imuBias.ConstantBias()
         self.lm.reset()
+        state = InitialState(t_ns, T, v, b, "recovery")
         sig = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
-        self._restart(k1, InitialState(t_ns, T, v, b, "recovery"), T_b_c, td, sig)
+        try:
+            self._restart(k1, state, T_b_c, td, sig)
+        except RuntimeError:   # last resort: loose priors, zero velocity, calibration reset
+            log.error("recovery restart refused by the solver; restarting with loose priors")
+            state = InitialState(t_ns, T, np.zeros(3), gtsam.imuBias.ConstantBias(), "recovery")
+            self._restart(k1, state, self.cam.T_b_c, self.td0, np.full(6, 0.1))
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
