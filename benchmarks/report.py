@@ -40,8 +40,11 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
 
 def machine_line(res: dict) -> str:
     m = res.get("machine", {})
+    sc = res.get("section_commits") or {}
+    commit = (m.get("commit", "?") if len(set(sc.values())) <= 1
+              else ", ".join(f"{k} at {v}" for k, v in sc.items()))
     return (f"Machine: {m.get('cpu', '?')}, {m.get('cores', '?')} cores; Python {m.get('python', '?')}, "
-            f"gtsam {m.get('gtsam', '?')}, numpy {m.get('numpy', '?')}; commit {m.get('commit', '?')}; "
+            f"gtsam {m.get('gtsam', '?')}, numpy {m.get('numpy', '?')}; commit {commit}; "
             f"{res.get('created', '')}{' (quick)' if res.get('quick') else ''}")
 
 

@@ -304,6 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         s0 = time.perf_counter()
         results[name] = runners[name](args.quick, log=lambda m: print(m, flush=True))
         results[name + "_seconds"] = time.perf_counter() - s0
+        results.setdefault("section_commits", {})[name] = results["machine"]["commit"]
         (args.out / "results.json").write_text(json.dumps(results, indent=1))
     results["total_seconds"] = sum(results.get(s + "_seconds", 0.0) for s in SECTIONS)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
