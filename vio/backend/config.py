@@ -99,6 +99,7 @@ class SolverConfig:
     relinearize_skip: int = 10
     factorization: Literal["QR", "CHOLESKY"] = "QR"
     wildfire_threshold: float = 1e-6
+    td_relinearize_threshold: float = 1e-4
     extra_iterations: int = 0
 
 

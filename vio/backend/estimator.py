@@ -43,6 +43,16 @@ class KeyframeResult:
     recovered: bool
 
 
+def _threshold_map(general: float, td: float) -> gtsam.ISAM2ThresholdMap:
+    """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
+    step and would never cross the general threshold."""
+    m = gtsam.ISAM2ThresholdMap()
+    for ch, dim in (("x", 6), ("v", 3), ("b", 6), ("e", 6), ("l", 1)):
+        m.insert((ch, np.full(dim, general)))
+    m.insert(("d", np.array([td])))
+    return m
+
+
 class Estimator:
     """Fixed-lag VIO backend. Call ``initialize``, then per frame ``add_imu`` and, for
     keyframes, ``add_keyframe``; ``predict`` gives the IMU-propagated current state."""
@@ -72,7 +82,7 @@ class Estimator:
         s = self.cfg.solver
         p = gtsam.ISAM2Params()
         p.setFactorization(s.factorization)
-        p.setRelinearizeThreshold(s.relinearize_threshold)
+        p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold))
         p.relinearizeSkip = s.relinearize_skip
         p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
         # iSAM2 skips updating variables whose change is below the wildfire threshold
