@@ -78,7 +78,8 @@ class Pipeline:
         self.n_keyframes = 0
 
     # -------------------------------------------------------------- helpers
-    def _window_imu(self, seconds: float):
+    def _window_imu(self):
+        """IMU of the recent packets (the deque holds ``static_window_s`` of them) and its span (s)."""
         segs = [p.imu for p in self._recent]
         imu = concat(segs)
         if len(imu) == 0:
@@ -97,7 +98,7 @@ class Pipeline:
 
     def _still(self) -> bool:
         ic = self.cfg.backend.init
-        imu, span = self._window_imu(ic.static_window_s)
+        imu, span = self._window_imu()
         if span < 0.8 * ic.static_window_s:
             return False
         if not imu_stillness(imu, ic).still:
@@ -122,11 +123,11 @@ class Pipeline:
         self.est.add_imu(pkt.imu)
         still = self._still()
         if self._is_keyframe(pkt):
-            res = self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1])
+            self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1])
             self._kf_features, self._kf_t = pkt.features, pkt.t_ns
             self.n_keyframes += 1
-            return self._emit(pkt, True, still, t0, kf=True, recovered=res.recovered)
-        return self._emit(pkt, False, still, t0, kf=False)
+            return self._emit(pkt, True, still, t0)
+        return self._emit(pkt, False, still, t0)
 
     def _features(self, pkt: FramePacket) -> FeatureFrame:
         if pkt.features is not None:
@@ -139,12 +140,12 @@ class Pipeline:
         window, which is then replayed through the estimator."""
         ic = self.cfg.backend.init
         self._init_buf.append(pkt)
-        imu, span = self._window_imu(ic.static_window_s)
+        imu, span = self._window_imu()
         if span >= ic.static_window_s - 1e-3 and self._still():
             if not self._start(static_init(imu, pkt.t_ns), pkt):
                 return None
             self._init_buf = []
-            return self._emit(pkt, True, True, t0, kf=True)
+            return self._emit(pkt, True, True, t0)
         buf = self._init_buf
         if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic_window_s:
             return None
@@ -189,8 +190,7 @@ class Pipeline:
         flow, n = self._flow_px(self._kf_features, pkt.features)
         return flow >= kc.min_parallax_px or n < kc.min_tracked
 
-    def _emit(self, pkt: FramePacket, is_kf: bool, still: bool, t0: float, kf: bool,
-              recovered: bool = False) -> FrameOutput:
+    def _emit(self, pkt: FramePacket, is_kf: bool, still: bool, t0: float) -> FrameOutput:
         if is_kf:
             T, v, b = self.est.latest()
             ids, pts = self.est.landmarks_w()
@@ -198,7 +198,7 @@ class Pipeline:
             nav = self.est.predict()
             T, v = nav.pose(), nav.velocity()
             b, ids, pts = self.est.latest()[2], None, None
-        out = FrameOutput(pkt.index, pkt.t_ns, T, np.asarray(v), b, kf, still,
+        out = FrameOutput(pkt.index, pkt.t_ns, T, np.asarray(v), b, is_kf, still,
                           time.perf_counter() - t0,
                           0 if pkt.features is None else len(pkt.features.ids),
                           self.est.lm.n_active(), self.est.td(), self.est.extrinsic(), ids, pts,

@@ -106,7 +106,7 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def _linear_align(win: InitWindow, cam: CameraCalib, R: list, dp: list, tracks: dict,
-                  g_norm: float, fixed_g: np.ndarray | None = None):
+                  fixed_g: np.ndarray | None = None):
     """Least-squares ``[v0, g0, depths]`` (or ``[v0, depths]`` with ``fixed_g``)."""
     t = np.array([(s - win.t_ns[0]) * 1e-9 for s in win.t_ns])
     Rbc, tbc = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
@@ -146,10 +146,11 @@ def _linear_align(win: InitWindow, cam: CameraCalib, R: list, dp: list, tracks: 
     return v0, g0, dict(zip(lids, x[3 + ng:]))
 
 
-def _batch_refine(win: InitWindow, cam: CameraCalib, params, cfg: BackendConfig,
+def _batch_refine(win: InitWindow, cam: CameraCalib, cfg: BackendConfig,
                   R_w_b0: gtsam.Rot3, R: list, dp: list, v0: np.ndarray, g0: np.ndarray,
-                  depths: dict, tracks: dict, pims: list) -> gtsam.Values:
-    """Batch LM over the window from the aligned initial guess (world = gravity-aligned)."""
+                  depths: dict, tracks: dict, pims: list) -> tuple[gtsam.Values, float]:
+    """Batch LM over the window from the aligned initial guess (world = gravity-aligned);
+    returns the solution and its mean error per factor."""
     t = np.array([(s - win.t_ns[0]) * 1e-9 for s in win.t_ns])
     Rw = R_w_b0.matrix()
     g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -202,16 +203,16 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     params = combined_params(imu_calib, cfg.imu)
     g_norm = cfg.imu.gravity
     R, dp, pims = _preintegrate(win, params, gtsam.imuBias.ConstantBias())
-    v0, g0, _ = _linear_align(win, cam, R, dp, tracks, g_norm)
+    v0, g0, _ = _linear_align(win, cam, R, dp, tracks)
     gerr = abs(np.linalg.norm(g0) - g_norm) / g_norm
     if not np.isfinite(gerr) or gerr > max_gravity_error:
         return AlignResult(False, None, f"gravity magnitude {np.linalg.norm(g0):.2f} m/s^2 "
                                         f"inconsistent (too little excitation?)", gerr)
     g0 = g0 / np.linalg.norm(g0) * g_norm
-    v0, _, depths = _linear_align(win, cam, R, dp, tracks, g_norm, fixed_g=g0)
+    v0, _, depths = _linear_align(win, cam, R, dp, tracks, fixed_g=g0)
     R_w_b0 = gravity_aligned_rotation(-g0)
     try:
-        est, mean_err = _batch_refine(win, cam, params, cfg, R_w_b0, R, dp, v0, g0, depths,
+        est, mean_err = _batch_refine(win, cam, cfg, R_w_b0, R, dp, v0, g0, depths,
                                       tracks, pims)
     except RuntimeError as exc:
         return AlignResult(False, None, f"batch refinement failed: {str(exc).splitlines()[0]}", gerr)

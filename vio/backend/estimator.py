@@ -170,7 +170,7 @@ class Estimator:
         for k in leaving:
             self.kf_t.pop(k, None)
             self.kf_gyro.pop(k, None)
-        n_removed = 0 if recovered else self._remove_outliers(t)
+        n_removed = 0 if recovered else self._remove_outliers()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
@@ -182,8 +182,8 @@ class Estimator:
             self.smoother.update()
         self.values = self.smoother.calculateEstimate()
 
-    def _remove_outliers(self, t: float) -> int:
-        g, stamps, removals, n = self.lm.outlier_removals(self.values, t)
+    def _remove_outliers(self) -> int:
+        g, stamps, removals, n = self.lm.outlier_removals(self.values)
         if n:
             try:
                 self._update(g, gtsam.Values(), stamps, removals)

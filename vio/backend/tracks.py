@@ -253,7 +253,7 @@ class LandmarkManager:
         v.insert(tr.key, np.array([1.0 / depth]))
 
     # --------------------------------------------------------------- outliers
-    def outlier_removals(self, values: gtsam.Values, t: float
+    def outlier_removals(self, values: gtsam.Values
                          ) -> tuple[gtsam.NonlinearFactorGraph, dict, list[int], int]:
         """Factors of tracks whose worst reprojection error exceeds ``outlier_px`` or whose
         depth left the valid range; those tracks are rejected for good."""
