@@ -82,24 +82,33 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
     """
     a = track.obs[frames[0]]
     rest = [track.obs[f] for f in frames[1:]]
-    readout = line_time_s * rows
-
-    def offset(o) -> float:
-        return 0.0 if not np.isfinite(o.row) else o.row / rows * readout
-
     vmax = cfg.vision.td_velocity_max
-
-    def vel(o) -> np.ndarray:  # implausible velocities would dominate td: drop their td term
-        return o.velocity if np.linalg.norm(o.velocity) <= vmax else np.zeros(2)
-
     lm = make_track(X(frames[0]), a.uv, [X(f) for f in frames[1:]],
                     np.array([o.uv for o in rest]),
-                    anchor_vel=vel(a), vel=np.array([vel(o) for o in rest]),
-                    anchor_offset=offset(a), offset=np.array([offset(o) for o in rest]))
+                    anchor_vel=_td_velocity(a.velocity, vmax),
+                    vel=np.array([_td_velocity(o.velocity, vmax) for o in rest]),
+                    anchor_offset=_row_offset(a, line_time_s),
+                    offset=np.array([_row_offset(o, line_time_s) for o in rest]))
+    kernel, td_key = _vision_options(cfg)
+    return landmark_factor(lm, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
+
+
+def _row_offset(o, line_time_s: float) -> float:
+    """Rolling-shutter delay of an observation's row (s): ``row / ROWS * t_readout`` with
+    ``t_readout = ROWS * line_time`` (seed 004); 0 when the row is unknown."""
+    return 0.0 if not np.isfinite(o.row) else o.row * line_time_s
+
+
+def _td_velocity(vel: np.ndarray, vmax: float) -> np.ndarray:
+    """The velocity multiplying td, or zero when implausible (a mistrack or a bad
+    depth would dominate td: drop its td term)."""
+    return vel if np.linalg.norm(vel) <= vmax else np.zeros(2)
+
+
+def _vision_options(cfg: BackendConfig) -> tuple[RobustKernel | None, int | None]:
     v = cfg.vision
-    kernel = None if v.kernel == "none" else RobustKernel(v.kernel, v.kernel_k)
-    return landmark_factor(lm, track.key, EXTRINSIC, sigma, v.model, kernel,
-                           TD if v.use_td else None)
+    return (None if v.kernel == "none" else RobustKernel(v.kernel, v.kernel_k),
+            TD if v.use_td else None)
 
 
 def image_velocity(uv: np.ndarray, depth: float, omega_c: np.ndarray, vel_c: np.ndarray) -> np.ndarray:
@@ -120,26 +129,15 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma:
     frames = track.frames()
     a = track.obs[frames[0]]
     sf = track.stereo_frames()
-    readout = line_time_s * rows
-
-    def offset(o) -> float:
-        return 0.0 if not np.isfinite(o.row) else o.row / rows * readout
-
     vmax = cfg.vision.td_velocity_max
-
-    def clip(v: np.ndarray) -> np.ndarray:
-        return v if np.linalg.norm(v) <= vmax else np.zeros(2)
-
     st = make_stereo_track(X(frames[0]), a.uv, [X(f) for f in sf],
                            np.array([track.obs[f].right_uv for f in sf]), C,
-                           anchor_vel=clip(a.velocity),
-                           vel=np.array([clip(track.obs[f].right_velocity) for f in sf]),
-                           anchor_offset=offset(a),
-                           offset=np.array([offset(track.obs[f]) for f in sf]))
-    v = cfg.vision
-    kernel = None if v.kernel == "none" else RobustKernel(v.kernel, v.kernel_k)
-    return stereo_factor(st, track.key, EXTRINSIC, sigma, v.model, kernel,
-                         TD if v.use_td else None)
+                           anchor_vel=_td_velocity(a.velocity, vmax),
+                           vel=np.array([_td_velocity(track.obs[f].right_velocity, vmax) for f in sf]),
+                           anchor_offset=_row_offset(a, line_time_s),
+                           offset=np.array([_row_offset(track.obs[f], line_time_s) for f in sf]))
+    kernel, td_key = _vision_options(cfg)
+    return stereo_factor(st, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
 
 
 def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values) -> np.ndarray:
