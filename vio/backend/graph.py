@@ -73,7 +73,7 @@ def zero_velocity(k: int, sigma: float) -> gtsam.NonlinearFactor:
 
 
 def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, sigma: float,
-                          line_time_s: float, rows: int) -> gtsam.NonlinearFactor:
+                          line_time_s: float) -> gtsam.NonlinearFactor:
     """The per-landmark projection factor over the given keyframes (first = anchor).
 
     Observation time offsets: ``row / ROWS * t_readout`` for rolling shutter (seed
@@ -124,7 +124,7 @@ def image_velocity(uv: np.ndarray, depth: float, omega_c: np.ndarray, vel_c: np.
 
 
 def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma: float,
-                        line_time_s: float, rows: int) -> gtsam.NonlinearFactor:
+                        line_time_s: float) -> gtsam.NonlinearFactor:
     """The landmark's cam1 observations (``factors.stereo``); ``C = T_b_c1 T_b_c0^-1``."""
     frames = track.frames()
     a = track.obs[frames[0]]

@@ -162,11 +162,11 @@ class LandmarkManager:
         if len(frames) >= 2:
             self._pending.append((tr, int(g.size())))
             g.add(graph.build_landmark_factor(src, frames, self.est.cfg, self.est.sigma,
-                                              cam.line_time_s, cam.height))
+                                              cam.line_time_s))
         if self.est.C_stereo is not None and src.stereo_frames():
             self._pending.append((tr, int(g.size())))
             g.add(graph.build_stereo_factor(src, self.est.C_stereo, self.est.cfg, self.est.sigma,
-                                            cam.line_time_s, cam.height))
+                                            cam.line_time_s))
 
     def _with_predicted_velocity(self, tr: Track, frames: list[int], k: int,
                                  pred: gtsam.NavState, lam: float) -> Track:
