@@ -44,7 +44,7 @@ def test_mode_resolution_errors(sim_stereo, tmp_path):
     with pytest.raises(ValueError, match="no cam0/features.csv"):
         resolve_mode(sim_stereo, "features")
     with pytest.raises(ValueError, match="not available"):
-        resolve_mode(sim_stereo, "direct")
+        resolve_mode(sim_stereo, "lidar")
 
 
 def test_image_stage_on_real_static_stereo():

@@ -23,7 +23,7 @@ def _add_run(sub) -> None:
     p.add_argument("--out", type=Path, help="TUM trajectory output (online estimates)")
     p.add_argument("--smoothed", type=Path, help="also write the window-smoothed trajectory")
     p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--mode", choices=["auto", "features", "stereo", "mono"],
+    p.add_argument("--mode", choices=["auto", "features", "stereo", "mono", "direct", "hybrid"],
                    default="auto")
     p.add_argument("--td", type=float, default=None, help="initial camera-IMU offset td [s]")
     p.add_argument("--trim", action="store_true", help="drop camera frames outside the IMU span")

@@ -19,6 +19,7 @@ from vio.backend.config import BackendConfig
 from vio.backend.estimator import Estimator
 from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
+from vio.direct.config import DirectConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
@@ -30,11 +31,13 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class PipelineConfig:
     """``td_s``: camera-to-IMU offset applied by the sync layer (s);
-    ``backend``: estimator parameters; ``frontend``: KLT tracking (image modes)."""
+    ``backend``: estimator parameters; ``frontend``: KLT tracking (image modes);
+    ``direct``: photometric points (``--mode direct|hybrid``)."""
 
     td_s: float = 0.0
     backend: BackendConfig = field(default_factory=BackendConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    direct: DirectConfig = field(default_factory=DirectConfig)
 
 
 @dataclass(frozen=True)
@@ -123,7 +126,7 @@ class Pipeline:
         self.est.add_imu(pkt.imu)
         still = self._still()
         if self._is_keyframe(pkt):
-            self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1])
+            self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
             self._kf_features, self._kf_t = pkt.features, pkt.t_ns
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0)
@@ -174,6 +177,8 @@ class Pipeline:
             return False
         self.est.kf_gyro[0] = pkt.imu.gyro[-1]
         self.est.lm.observe(0, self._features(pkt))
+        for src in self.est.sources:
+            src.observe(0, pkt)
         self._kf_features, self._kf_t = pkt.features, pkt.t_ns
         self.n_keyframes = 1
         log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,

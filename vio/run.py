@@ -54,7 +54,8 @@ def load_config(path: Path | None, td: float | None = None) -> PipelineConfig:
     return cfg
 
 
-MODES = ("features", "mono", "stereo")
+MODES = ("features", "mono", "stereo", "direct", "hybrid")
+STEREO_MODES = ("stereo", "direct", "hybrid")
 
 
 def resolve_mode(data: EurocDataset, mode: str) -> str:
@@ -65,9 +66,9 @@ def resolve_mode(data: EurocDataset, mode: str) -> str:
         raise ValueError(f"mode {mode!r} is not available (choose from {MODES})")
     if mode == "features" and data.features is None:
         raise ValueError(f"{data.root}: no cam0/features.csv for --mode features")
-    if mode in ("mono", "stereo") and not data.cam0.has_images():
+    if mode != "features" and not data.cam0.has_images():
         raise ValueError(f"{data.root}: no cam0 images for --mode {mode}")
-    if mode == "stereo" and (data.cam1 is None or not data.cam1.has_images()):
+    if mode in STEREO_MODES and (data.cam1 is None or not data.cam1.has_images()):
         raise ValueError(f"{data.root}: no cam1 images for --mode stereo")
     return mode
 
@@ -89,7 +90,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None 
     """Run the pipeline over a loaded dataset (feature tracks, or images through the
     KLT front end in ``mono``/``stereo`` mode)."""
     mode = resolve_mode(data, mode)
-    stereo = mode == "stereo"
+    stereo = mode in STEREO_MODES
     pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg, data.cam1.calib if stereo else None)
     pipe.sinks.extend(sinks or [])
     res = RunResult()
@@ -98,8 +99,12 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None 
     if mode == "features":
         it = packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)])
     else:
-        from vio.tracking import ImageStage
-        stage = ImageStage(data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
+        if mode in ("direct", "hybrid"):
+            from vio.direct.mode import attach
+            stage = attach(pipe, data, cfg, hybrid=mode == "hybrid")
+        else:
+            from vio.tracking import ImageStage
+            stage = ImageStage(data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
         it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)))
     bar = None
     if progress:

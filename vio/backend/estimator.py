@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
@@ -43,11 +44,38 @@ class KeyframeResult:
     recovered: bool
 
 
-def _threshold_map(general: float, td: float) -> gtsam.ISAM2ThresholdMap:
+class FactorSource(Protocol):
+    """Extra factors an ``Estimator`` adds at every keyframe next to its own landmark
+    factors (e.g. the photometric points of ``vio.direct``), registered in
+    ``Estimator.sources``. Each keyframe: ``observe`` gets the keyframe index and the
+    pipeline's packet, then ``prepare_update`` appends factors/values/timestamps for
+    keyframe ``k`` to ``g``/``v``/``stamps`` (``v`` already holds X(k), V(k), B(k) at
+    the IMU prediction; ``leaving`` are the keyframes marginalized by this update) and
+    returns smoother factor indices to remove; ``record_factor_indices`` receives the
+    smoother indices of *all* new factors of the update (the source kept the positions
+    ``g.size()`` of its own when adding them). ``reset`` forgets all graph state after
+    a solver restart. ``key_dims`` maps the key characters it uses to their dimensions
+    (for the relinearization thresholds)."""
+
+    key_dims: dict[str, int]
+
+    def observe(self, k: int, frame: Any) -> None: ...
+
+    def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
+                       g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> list[int]: ...
+
+    def record_factor_indices(self, indices: list[int]) -> None: ...
+
+    def reset(self) -> None: ...
+
+
+def _threshold_map(general: float, td: float,
+                   extra: dict[str, int] | None = None) -> gtsam.ISAM2ThresholdMap:
     """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
     step and would never cross the general threshold."""
     m = gtsam.ISAM2ThresholdMap()
-    for ch, dim in (("x", 6), ("v", 3), ("b", 6), ("e", 6), ("l", 1)):
+    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, **(extra or {})}
+    for ch, dim in dims.items():
         m.insert((ch, np.full(dim, general)))
     m.insert(("d", np.array([td])))
     return m
@@ -76,13 +104,16 @@ class Estimator:
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self.sources: list[FactorSource] = []
 
     # ------------------------------------------------------------------ setup
     def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
         s = self.cfg.solver
         p = gtsam.ISAM2Params()
         p.setFactorization(s.factorization)
-        p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold))
+        extra = {ch: d for src in self.sources for ch, d in src.key_dims.items()}
+        p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold,
+                                                 extra))
         p.relinearizeSkip = s.relinearize_skip
         p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
         # iSAM2 skips updating variables whose change is below the wildfire threshold
@@ -137,10 +168,10 @@ class Estimator:
         return self.pim.predict(gtsam.NavState(T, v), b)
 
     def add_keyframe(self, t_ns: int, features: FeatureFrame, still: bool = False,
-                     gyro: np.ndarray | None = None) -> KeyframeResult:
+                     gyro: np.ndarray | None = None, frame: Any = None) -> KeyframeResult:
         """Insert a keyframe at ``t_ns`` with the IMU integrated since the last one.
         ``gyro``: the raw gyro reading (rad/s, body) at ``t_ns``, for predicted
-        feature velocities."""
+        feature velocities; ``frame``: the pipeline's packet, passed to ``sources``."""
         k0, k1 = self.k, self.k + 1
         pred = self.predict()
         _, _, b0 = self.latest()
@@ -161,6 +192,9 @@ class Estimator:
         self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
+        for src in self.sources:
+            src.observe(k1, frame)
+            removals += src.prepare_update(k1, pred, leaving, g, v, stamps)
         recovered = False
         try:
             self._update(g, v, stamps, removals)
@@ -177,7 +211,10 @@ class Estimator:
 
     def _update(self, g, v, stamps, removals) -> None:
         self.smoother.update(g, v, stamps, removals)
-        self.lm.record_factor_indices(self.smoother.getISAM2Result().getNewFactorsIndices())
+        indices = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+        self.lm.record_factor_indices(indices)
+        for src in self.sources:
+            src.record_factor_indices(indices)
         for _ in range(self.cfg.solver.extra_iterations):
             self.smoother.update()
         self.values = self.smoother.calculateEstimate()
@@ -208,6 +245,8 @@ class Estimator:
         if not sane:   # the prediction blew up: hold still at the last good pose
             T, v, b = good.atPose3(X(k0)), np.zeros(3), gtsam.imuBias.ConstantBias()
         self.lm.reset()
+        for src in self.sources:
+            src.reset()
         state = InitialState(t_ns, T, v, b, "recovery")
         sig = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
         try:
