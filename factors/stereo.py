@@ -14,7 +14,13 @@ extrinsic is fixed (the default), a first-order approximation when it is estimat
 
 Keys: ``[lambda, T_b_c0, T_w_b_anchor, T_w_b_m1 ... T_w_b_mk]`` (+ ``td``), the
 ``m`` distinct and different from the anchor (right observations of the anchor
-keyframe map onto the anchor key). Residuals: one 2-vector per right observation.
+keyframe map onto the anchor key). Residuals: one 2-vector per observation.
+
+Mixed tracks: ``cams`` marks each observation as cam1 (the virtual body ``T C``) or
+cam0 (``C = I``, the plain projection factor of :mod:`factors.landmark`), so all
+observations of a stereo landmark (left and right) share one factor and one Python
+callback per linearization instead of two. A cam0 observation of the anchor
+keyframe itself constrains nothing and is rejected.
 """
 
 from __future__ import annotations
@@ -39,7 +45,8 @@ class StereoTrack:
     velocity and time offset; ``target`` (n,) index of each observation's body key
     (0 = anchor, i >= 1 = ``keys[i - 1]``); ``uv`` (n, 2) cam1 normalized points,
     ``vel`` (n, 2) their velocities (1/s), ``offset`` (n,) row-time minus td_obs (s);
-    ``C`` (4, 4) = ``T_b_c1 * T_b_c0^-1``.
+    ``C`` (4, 4) = ``T_b_c1 * T_b_c0^-1``; ``right`` (n,) bool: True for a cam1
+    observation (virtual body ``T C``), False for a cam0 one (``C = I``).
     """
 
     anchor_key: int
@@ -54,6 +61,7 @@ class StereoTrack:
     C: np.ndarray
     ad_inv: np.ndarray
     basis: np.ndarray
+    right: np.ndarray
 
     @property
     def n(self) -> int:
@@ -63,15 +71,22 @@ class StereoTrack:
 def make_stereo_track(anchor_key: int, anchor_uv: np.ndarray, obs_keys: Sequence[int],
                       uv: np.ndarray, C: gtsam.Pose3, anchor_vel: np.ndarray | None = None,
                       vel: np.ndarray | None = None, anchor_offset: float = 0.0,
-                      offset: np.ndarray | None = None) -> StereoTrack:
-    """Pack right observations made from the body keys ``obs_keys`` (anchor allowed)."""
+                      offset: np.ndarray | None = None,
+                      right: Sequence[bool] | None = None) -> StereoTrack:
+    """Pack observations made from the body keys ``obs_keys``: cam1 observations
+    (``right[i]`` True, the default) may come from the anchor, cam0 ones may not;
+    each (key, camera) pair at most once."""
     obs_keys = [int(k) for k in obs_keys]
     n = len(obs_keys)
+    right_a = np.ones(n, bool) if right is None else np.asarray(right, bool).reshape(n)
     if n == 0:
         raise ValueError("stereo track without observations")
-    if len(set(obs_keys)) != n:
-        raise ValueError(f"stereo track repeats a body key: {obs_keys}")
-    others = [k for k in obs_keys if k != int(anchor_key)]
+    pairs = list(zip(obs_keys, right_a.tolist()))
+    if len(set(pairs)) != n:
+        raise ValueError(f"stereo track repeats a (body key, camera) pair: {pairs}")
+    if any(k == int(anchor_key) and not r for k, r in pairs):
+        raise ValueError("a cam0 observation of the anchor keyframe constrains nothing")
+    others = list(dict.fromkeys(k for k in obs_keys if k != int(anchor_key)))
     index = {k: i + 1 for i, k in enumerate(others)}
     index[int(anchor_key)] = 0
     uv = np.asarray(uv, float).reshape(n, 2)
@@ -81,7 +96,7 @@ def make_stereo_track(anchor_key: int, anchor_uv: np.ndarray, obs_keys: Sequence
                        np.array([index[k] for k in obs_keys], dtype=np.int64), uv,
                        np.zeros((n, 2)) if vel is None else np.asarray(vel, float).reshape(n, 2),
                        np.zeros(n) if offset is None else np.asarray(offset, float).reshape(n),
-                       C.matrix(), C.inverse().AdjointMap(), tangent_basis(uv))
+                       C.matrix(), C.inverse().AdjointMap(), tangent_basis(uv), right_a)
 
 
 def stereo_keys(track: StereoTrack, lam_key: int, extrinsic_key: int,
@@ -99,7 +114,8 @@ def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigm
     """
     n, k = track.n, len(track.keys)
     bodies = [args[2]] + list(args[3:3 + k])
-    Tjs = np.array([bodies[t].matrix() @ track.C for t in track.target])
+    Tjs = np.array([bodies[t].matrix() @ track.C if rt else bodies[t].matrix()
+                    for t, rt in zip(track.target, track.right)])
     Ti, Tc, lam = args[2].matrix(), args[1].matrix(), float(args[0][0])
     if use_td:
         p = td_project_batch(Ti, Tjs, Tc, lam, float(args[3 + k][0]), track.anchor_uv,
@@ -111,10 +127,15 @@ def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigm
     J[:, :COL_TJ] = p.J[:, :COL_TJ]
     if use_td:
         J[:, -1] = p.J[:, -1]
-    for i, t in enumerate(track.target):
-        block = p.J[2 * i:2 * i + 2, COL_TJ + 6 * i:COL_TJ + 6 * i + 6] @ track.ad_inv
-        c0 = 7 if t == 0 else COL_TJ + 6 * (t - 1)   # anchor block or target block
-        J[2 * i:2 * i + 2, c0:c0 + 6] += block
+    # observation i's 2x6 body block sits at columns COL_TJ + 6i of the batch Jacobian;
+    # map it through Ad(C^-1) for cam1 and onto its body key's columns (anchor: 7)
+    i = np.arange(n)
+    blocks = p.J[:, COL_TJ:COL_TJ + 6 * n].reshape(n, 2, n, 6)[i, :, i, :]
+    if track.right.any():
+        blocks[track.right] = blocks[track.right] @ track.ad_inv
+    c0 = np.where(track.target == 0, 7, COL_TJ + 6 * (track.target - 1))
+    rows = (2 * i[:, None] + np.arange(2))[:, :, None]
+    J[rows, (c0[:, None] + np.arange(6))[:, None, :]] += blocks
     r = p.r.copy()
     if robust is not None and robust.kind != "none":
         reweight_blocks(r, J, sigma, robust)

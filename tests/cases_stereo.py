@@ -29,27 +29,37 @@ def _scene(rng: np.random.Generator, n: int, far: bool, tiny: bool):
         p_w = Ta.compose(T_b_c0).transformFrom(np.append(uva, 1.0) / lam)
         bodies = [Ta] + [Ta.compose(random_pose(rng, 1e-6 if tiny else 0.1,
                                                 1e-6 if tiny else 0.3)) for _ in range(n)]
-        uvs = []
+        uvs, uvs0 = [], []
         for Tb in bodies:
             p = Tb.compose(T_b_c1).transformTo(p_w)
-            if p[2] < 0.2 * np.linalg.norm(p):
+            p0 = Tb.compose(T_b_c0).transformTo(p_w)
+            if p[2] < 0.2 * np.linalg.norm(p) or p0[2] < 0.2 * np.linalg.norm(p0):
                 break
             uvs.append(p[:2] / p[2] + rng.normal(size=2) * 0.01)
+            uvs0.append(p0[:2] / p0[2] + rng.normal(size=2) * 0.01)
         if len(uvs) == len(bodies):
-            return T_b_c0, T_b_c1, Ta, bodies[1:], lam, uva, np.array(uvs)
+            return T_b_c0, T_b_c1, Ta, bodies[1:], lam, uva, np.array(uvs), np.array(uvs0[1:])
     raise RuntimeError("no valid stereo scene")
 
 
 def stereo_case(name: str, model: str, *, n: int = 3, use_td: bool = False,
                 robust: str | None = None, far: bool = False, tiny: bool = False,
-                degenerate: bool = False) -> JacobianCase:
+                degenerate: bool = False, mixed: bool = False) -> JacobianCase:
+    """``mixed``: the cam0 observations of the non-anchor bodies join the cam1 ones
+    in the same factor (one callback per stereo landmark)."""
     def build(rng: np.random.Generator):
-        Tc0, Tc1, Ta, others, lam, uva, uvs = _scene(rng, n, far, tiny)
+        Tc0, Tc1, Ta, others, lam, uva, uvs, uvs0 = _scene(rng, n, far, tiny)
         C = Tc1.compose(Tc0.inverse())
         body_keys = [X(0)] + [X(k + 1) for k in range(n)]
-        track = make_stereo_track(X(0), uva, body_keys, uvs, C, anchor_vel=rng.normal(size=2),
-                                  vel=rng.normal(size=(n + 1, 2)), anchor_offset=0.003,
-                                  offset=rng.uniform(-0.01, 0.01, n + 1))
+        obs_keys, right = body_keys, [True] * (n + 1)
+        if mixed:   # interleave cam0 observations of bodies 1..n
+            obs_keys = body_keys + body_keys[1:]
+            right = right + [False] * n
+            uvs = np.vstack([uvs, uvs0.reshape(-1, 2)])
+        m = len(obs_keys)
+        track = make_stereo_track(X(0), uva, obs_keys, uvs, C, anchor_vel=rng.normal(size=2),
+                                  vel=rng.normal(size=(m, 2)), anchor_offset=0.003,
+                                  offset=rng.uniform(-0.01, 0.01, m), right=right)
         kernel = RobustKernel(robust) if robust else None
         factor = stereo_factor(track, L(0), E(0), SIGMA, model, kernel, T(0) if use_td else None)
         values = gtsam.Values()
@@ -84,4 +94,7 @@ CASES: list[JacobianCase] = [
     stereo_case("stereo_pinhole_far", "pinhole", far=True, degenerate=True),
     stereo_case("stereo_sphere_tiny_motion", "sphere", tiny=True, degenerate=True),
     stereo_case("stereo_pinhole_anchor_only", "pinhole", n=0, degenerate=True),
+    stereo_case("stereo_mixed_pinhole_td", "pinhole", use_td=True, mixed=True),
+    stereo_case("stereo_mixed_sphere", "sphere", mixed=True, n=4),
+    stereo_case("stereo_mixed_tiny_motion", "pinhole", tiny=True, mixed=True, degenerate=True),
 ]

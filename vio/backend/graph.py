@@ -73,36 +73,39 @@ def zero_velocity(k: int, sigma: float) -> gtsam.NonlinearFactor:
 
 
 def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, sigma: float,
-                          line_time_s: float) -> gtsam.NonlinearFactor:
+                          line_time_s: float, vel: np.ndarray | None = None) -> gtsam.NonlinearFactor:
     """The per-landmark projection factor over the given keyframes (first = anchor).
+    ``vel`` (n, 2): image velocities of the observations in ``frames`` for the td
+    term (default: the measured ones).
 
     Observation time offsets: ``row / ROWS * t_readout`` for rolling shutter (seed
     004, projection_td_factor); td recorded at observation time is 0 because the
     td variable is the residual offset on top of the sync layer's constant.
     """
-    a = track.obs[frames[0]]
-    rest = [track.obs[f] for f in frames[1:]]
-    vmax = cfg.vision.td_velocity_max
-    lm = make_track(X(frames[0]), a.uv, [X(f) for f in frames[1:]],
-                    np.array([o.uv for o in rest]),
-                    anchor_vel=_td_velocity(a.velocity, vmax),
-                    vel=np.array([_td_velocity(o.velocity, vmax) for o in rest]),
-                    anchor_offset=_row_offset(a, line_time_s),
-                    offset=np.array([_row_offset(o, line_time_s) for o in rest]))
+    obs = [track.obs[f] for f in frames]
+    vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel,
+                       cfg.vision.td_velocity_max)
+    off = _row_offsets(obs, line_time_s)
+    lm = make_track(X(frames[0]), obs[0].uv, [X(f) for f in frames[1:]],
+                    np.array([o.uv for o in obs[1:]]), anchor_vel=vel[0], vel=vel[1:],
+                    anchor_offset=off[0], offset=off[1:])
     kernel, td_key = _vision_options(cfg)
     return landmark_factor(lm, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
 
 
-def _row_offset(o, line_time_s: float) -> float:
-    """Rolling-shutter delay of an observation's row (s): ``row / ROWS * t_readout`` with
-    ``t_readout = ROWS * line_time`` (seed 004); 0 when the row is unknown."""
-    return 0.0 if not np.isfinite(o.row) else o.row * line_time_s
+def _row_offsets(obs: list, line_time_s: float) -> np.ndarray:
+    """Rolling-shutter delay of each observation's row (s): ``row / ROWS * t_readout``
+    with ``t_readout = ROWS * line_time`` (seed 004); 0 when the row is unknown."""
+    rows = np.array([o.row for o in obs], float)
+    return np.where(np.isfinite(rows), rows * line_time_s, 0.0)
 
 
 def _td_velocity(vel: np.ndarray, vmax: float) -> np.ndarray:
-    """The velocity multiplying td, or zero when implausible (a mistrack or a bad
-    depth would dominate td: drop its td term)."""
-    return vel if np.linalg.norm(vel) <= vmax else np.zeros(2)
+    """The velocities (n, 2) multiplying td, zeroed where implausible (a mistrack or a
+    bad depth would dominate td: drop its td term)."""
+    vel = np.array(vel, float).reshape(-1, 2)
+    vel[~(np.linalg.norm(vel, axis=1) <= vmax)] = 0.0
+    return vel
 
 
 def _vision_options(cfg: BackendConfig) -> tuple[RobustKernel | None, int | None]:
@@ -111,49 +114,70 @@ def _vision_options(cfg: BackendConfig) -> tuple[RobustKernel | None, int | None
             TD if v.use_td else None)
 
 
-def image_velocity(uv: np.ndarray, depth: float, omega_c: np.ndarray, vel_c: np.ndarray) -> np.ndarray:
-    """Normalized-plane velocity (1/s) of a static point seen at ``uv`` with depth
-    ``depth`` (m) by a camera moving with angular velocity ``omega_c`` (rad/s) and
-    linear velocity ``vel_c`` (m/s), both in the camera frame (the classical
-    interaction matrix of image-based visual servoing)."""
-    u, v = uv
-    wx, wy, wz = omega_c
-    vx, vy, vz = vel_c
-    return np.array([(-vx + u * vz) / depth + u * v * wx - (1 + u * u) * wy + v * wz,
-                     (-vy + v * vz) / depth + (1 + v * v) * wx - u * v * wy - u * wz])
+def image_velocity(uv: np.ndarray, depth: np.ndarray, omega_c: np.ndarray,
+                   vel_c: np.ndarray) -> np.ndarray:
+    """Normalized-plane velocities (n, 2) (1/s) of static points seen at ``uv`` (n, 2)
+    with depths ``depth`` (n,) (m) by cameras moving with angular velocities
+    ``omega_c`` (n, 3) (rad/s) and linear velocities ``vel_c`` (n, 3) (m/s), both in
+    the camera frame (the classical interaction matrix of image-based visual
+    servoing). Single points broadcast: (2,), scalar, (3,), (3,) give (2,)."""
+    uv, omega_c, vel_c = np.asarray(uv, float), np.asarray(omega_c, float), np.asarray(vel_c, float)
+    u, v = uv[..., 0], uv[..., 1]
+    wx, wy, wz = omega_c[..., 0], omega_c[..., 1], omega_c[..., 2]
+    vx, vy, vz = vel_c[..., 0], vel_c[..., 1], vel_c[..., 2]
+    return np.stack([(-vx + u * vz) / depth + u * v * wx - (1 + u * u) * wy + v * wz,
+                     (-vy + v * vz) / depth + (1 + v * v) * wx - u * v * wy - u * wz], axis=-1)
 
 
 def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma: float,
-                        line_time_s: float) -> gtsam.NonlinearFactor:
-    """The landmark's cam1 observations (``factors.stereo``); ``C = T_b_c1 T_b_c0^-1``."""
+                        line_time_s: float, vel: np.ndarray | None = None,
+                        rvel: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+    """All observations of a stereo landmark in one factor (``factors.stereo``, mixed
+    track): cam0 of the non-anchor keyframes and cam1 of every keyframe that matched
+    it; ``C = T_b_c1 T_b_c0^-1``. One Python callback per linearization instead of a
+    cam0 and a cam1 factor. ``vel`` / ``rvel`` (n, 2): cam0 / cam1 velocities of the
+    observations in the track's frames for the td term (default: the measured ones;
+    ``rvel`` rows of frames without a cam1 match are ignored)."""
     frames = track.frames()
-    a = track.obs[frames[0]]
-    sf = track.stereo_frames()
+    obs = [track.obs[f] for f in frames]
     vmax = cfg.vision.td_velocity_max
-    st = make_stereo_track(X(frames[0]), a.uv, [X(f) for f in sf],
-                           np.array([track.obs[f].right_uv for f in sf]), C,
-                           anchor_vel=_td_velocity(a.velocity, vmax),
-                           vel=np.array([_td_velocity(track.obs[f].right_velocity, vmax) for f in sf]),
-                           anchor_offset=_row_offset(a, line_time_s),
-                           offset=np.array([_row_offset(track.obs[f], line_time_s) for f in sf]))
+    vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
+    off = _row_offsets(obs, line_time_s)
+    st_i = [i for i, o in enumerate(obs) if o.right_uv is not None]
+    keys = [X(f) for f in frames[1:]] + [X(frames[i]) for i in st_i]
+    uv = np.array([o.uv for o in obs[1:]] + [obs[i].right_uv for i in st_i]).reshape(-1, 2)
+    rvel = _td_velocity(np.array([obs[i].right_velocity for i in st_i]) if rvel is None
+                        else np.asarray(rvel)[st_i], vmax)
+    st = make_stereo_track(X(frames[0]), obs[0].uv, keys, uv, C, anchor_vel=vel[0],
+                           vel=np.vstack([vel[1:], rvel]), anchor_offset=off[0],
+                           offset=np.r_[off[1:], off[st_i]],
+                           right=[False] * (len(frames) - 1) + [True] * len(st_i))
     kernel, td_key = _vision_options(cfg)
     return stereo_factor(st, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
 
 
-def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values) -> np.ndarray:
-    """Normalized-plane reprojection error norms of the non-anchor observations."""
+def camera_table(values: gtsam.Values, frames: list[int]) -> tuple[dict, np.ndarray, np.ndarray]:
+    """``pos`` (keyframe -> row), ``R_w_c`` (K, 3, 3) and ``t_w_c`` (K, 3) of cam0 at the
+    given keyframes in ``values``."""
     T_b_c = values.atPose3(EXTRINSIC)
+    Ts = [values.atPose3(X(f)).compose(T_b_c) for f in frames]
+    return ({f: i for i, f in enumerate(frames)}, np.array([T.rotation().matrix() for T in Ts]),
+            np.array([T.translation() for T in Ts]))
+
+
+def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values,
+                        table: tuple | None = None) -> np.ndarray:
+    """Normalized-plane reprojection error norms of the non-anchor observations;
+    ``table``: a :func:`camera_table` covering ``frames`` (built here if None)."""
     lam = float(values.atVector(track.key)[0])
-    a = track.obs[frames[0]]
-    T_w_ca = values.atPose3(X(frames[0])).compose(T_b_c)
     if lam <= 0:
         return np.full(len(frames) - 1, np.inf)
-    p_w = T_w_ca.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
-    errs = []
-    for f in frames[1:]:
-        p_c = values.atPose3(X(f)).compose(T_b_c).transformTo(p_w)
-        if p_c[2] <= 1e-6:
-            errs.append(np.inf)
-            continue
-        errs.append(float(np.linalg.norm(p_c[:2] / p_c[2] - track.obs[f].uv)))
-    return np.array(errs)
+    pos, R, t = table if table is not None else camera_table(values, frames)
+    idx = np.array([pos[f] for f in frames])
+    a = track.obs[frames[0]].uv
+    p_w = R[idx[0]] @ (np.array([a[0], a[1], 1.0]) / lam) + t[idx[0]]
+    p_c = np.einsum("nji,nj->ni", R[idx[1:]], p_w - t[idx[1:]])
+    uv = np.array([track.obs[f].uv for f in frames[1:]]).reshape(-1, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - uv, axis=1)
+    return np.where(p_c[:, 2] > 1e-6, err, np.inf)

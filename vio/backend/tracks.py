@@ -156,65 +156,90 @@ class LandmarkManager:
                     lam: float) -> None:
         frames = tr.frames()
         cam = self.est.cam
-        src = tr
+        vel = rvel = None
         if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
-            src = self._with_predicted_velocity(tr, frames, k, pred, lam)
-        if len(frames) >= 2:
-            self._pending.append((tr, int(g.size())))
-            g.add(graph.build_landmark_factor(src, frames, self.est.cfg, self.est.sigma,
-                                              cam.line_time_s))
-        if self.est.C_stereo is not None and src.stereo_frames():
-            self._pending.append((tr, int(g.size())))
-            g.add(graph.build_stereo_factor(src, self.est.C_stereo, self.est.cfg, self.est.sigma,
-                                            cam.line_time_s))
+            vel, rvel = self._predicted_velocities(tr, frames, k, pred, lam)
+        self._pending.append((tr, int(g.size())))
+        if self.est.C_stereo is not None and tr.stereo_frames():
+            g.add(graph.build_stereo_factor(tr, self.est.C_stereo, self.est.cfg, self.est.sigma,
+                                            cam.line_time_s, vel, rvel))
+        else:
+            g.add(graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma,
+                                              cam.line_time_s, vel))
 
-    def _with_predicted_velocity(self, tr: Track, frames: list[int], k: int,
-                                 pred: gtsam.NavState, lam: float) -> Track:
-        """A copy of ``tr`` whose observation velocities are predicted from the state
-        (keyframe velocity, bias-corrected gyro, landmark depth) instead of measured:
-        independent of the pixel noise of the observations the factor compares, so the
-        td estimate is not biased towards zero by noise (see ``VisionConfig.td_velocity``).
-        A prediction further than ``td_velocity_gate`` from the measurement (a landmark
-        with a wrong depth) is not used."""
-        a = tr.obs[frames[0]]
-        T_w_ca, _, _ = self._frame_motion(frames[0], k, pred)
-        p_w = T_w_ca.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
-        obs = {}
+    def _predicted_velocities(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
+                              lam: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """(n, 2) cam0 and, with stereo, cam1 image velocities of the track's
+        observations predicted from the state (keyframe velocity, bias-corrected gyro,
+        landmark depth) instead of measured: independent of the pixel noise of the
+        observations the factor compares, so the td estimate is not biased towards zero
+        by noise (see ``VisionConfig.td_velocity``). The cam1 prediction also keeps the
+        static stereo pair (cam0 and cam1 at one instant) free of td: both of its
+        observations then shift consistently with td, as they must, whereas noisy
+        measured velocities turn every pair into a pull of td towards zero. Where a
+        prediction is further than ``td_velocity_gate`` from the measurement (a
+        landmark with a wrong depth), the measurement is kept."""
+        pos, R, t, w, v = self._motion_table(k, pred)
+        idx = np.array([pos[f] for f in frames])
+        obs = [tr.obs[f] for f in frames]
+        uv = np.array([o.uv for o in obs])
+        a = np.array([uv[0, 0], uv[0, 1], 1.0]) / lam
+        p_w = R[idx[0]] @ a + t[idx[0]]
+        p_c = np.einsum("nji,nj->ni", R[idx], p_w - t[idx])   # R_w_c^T (p_w - t_w_c)
+        w_c, v_c = w[idx], v[idx]
+        vel = self._gated(uv, p_c[:, 2], w_c, v_c, np.array([o.velocity for o in obs]))
+        if self.est.T_c0_c1 is None:
+            return vel, None
+        R10 = self.est.T_c0_c1.rotation().matrix().T
+        t01 = self.est.T_c0_c1.translation()
+        has_r = np.array([o.right_uv is not None for o in obs])
+        rvel = np.zeros_like(vel)
+        if has_r.any():
+            ruv = np.array([o.right_uv for o in obs if o.right_uv is not None])
+            rmeas = np.array([o.right_velocity for o in obs if o.right_uv is not None])
+            z1 = (p_c[has_r] - t01) @ R10[2]
+            w1 = w_c[has_r] @ R10.T
+            v1 = (v_c[has_r] + np.cross(w_c[has_r], t01)) @ R10.T
+            rvel[has_r] = self._gated(ruv, z1, w1, v1, rmeas)
+        return vel, rvel
+
+    def _gated(self, uv: np.ndarray, z: np.ndarray, w_c: np.ndarray, v_c: np.ndarray,
+               meas: np.ndarray) -> np.ndarray:
+        """Predicted image velocities (n, 2) where the depth is valid and the prediction
+        within ``td_velocity_gate`` of the measurement ``meas``; the measurement elsewhere."""
         vc = self.est.cfg.vision
-        for f in frames:
-            T_w_c, w_c, v_c = self._frame_motion(f, k, pred)
-            z = T_w_c.transformTo(p_w)[2]
-            o = tr.obs[f]
-            vel = o.velocity
-            if z > vc.min_depth_m:
-                p = graph.image_velocity(o.uv, z, w_c, v_c)
-                # keep the measurement where the prediction is implausible (bad depth)
-                if np.linalg.norm(p - o.velocity) < vc.td_velocity_gate:
-                    vel = p
-            if not np.linalg.norm(vel) <= vc.td_velocity_max:
-                vel = np.zeros(2)  # a spike would dominate td (huge leverage): drop its td term
-            obs[f] = Obs(o.uv, vel, o.row, o.right_uv, o.right_velocity)
-        return Track(tr.lid, obs, tr.key, tr.anchor)
+        out = np.array(meas, float)
+        ok = z > vc.min_depth_m
+        if ok.any():
+            p = graph.image_velocity(uv[ok], z[ok], w_c[ok], v_c[ok])
+            good = np.linalg.norm(p - out[ok], axis=1) < vc.td_velocity_gate
+            out[np.flatnonzero(ok)[good]] = p[good]
+        return out
 
-    def _frame_motion(self, f: int, k: int, pred: gtsam.NavState
-                      ) -> tuple[gtsam.Pose3, np.ndarray, np.ndarray]:
-        """``T_w_c`` of keyframe f and its camera angular / linear velocity in the camera
-        frame (bias-corrected gyro, estimated velocity); cached per update."""
-        key = (f, k)
-        hit = self._motion_cache.get(key)
-        if hit is not None:
-            return hit
+    def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
+        """Per window keyframe f: ``R_w_c`` (K, 3, 3), ``t_w_c`` (K, 3), and the camera's
+        angular / linear velocity in the camera frame (K, 3) from the bias-corrected
+        gyro and the estimated velocity; ``pos`` maps f to its row. Cached per update."""
+        if self._motion_cache:
+            return self._motion_cache["table"]
         vals, est = self.est.values, self.est
         T_b_c = vals.atPose3(graph.EXTRINSIC)
         R_c_b = T_b_c.rotation().matrix().T
-        T_w_b = self._pose(f, k, pred)
-        v_w = pred.velocity() if f == k else vals.atVector(graph.V(f))
-        b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
-        w_b = est.kf_gyro.get(f, np.zeros(3)) - b.gyroscope()
-        v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
-        out = (T_w_b.compose(T_b_c), R_c_b @ w_b, R_c_b @ v_b)
-        self._motion_cache[key] = out
-        return out
+        frames = sorted(est.kf_t)
+        R, t, w, v = [], [], [], []
+        for f in frames:
+            T_w_b = self._pose(f, k, pred)
+            v_w = pred.velocity() if f == k else vals.atVector(graph.V(f))
+            b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
+            w_b = est.kf_gyro.get(f, np.zeros(3)) - b.gyroscope()
+            v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
+            T_w_c = T_w_b.compose(T_b_c)
+            R.append(T_w_c.rotation().matrix()), t.append(T_w_c.translation())
+            w.append(R_c_b @ w_b), v.append(R_c_b @ v_b)
+        table = ({f: i for i, f in enumerate(frames)}, np.array(R), np.array(t), np.array(w),
+                 np.array(v))
+        self._motion_cache["table"] = table
+        return table
 
     def _pose(self, f: int, k: int, pred: gtsam.NavState) -> gtsam.Pose3:
         return pred.pose() if f == k else self.est.values.atPose3(graph.X(f))
@@ -260,13 +285,14 @@ class LandmarkManager:
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
+        table = graph.camera_table(values, sorted(self.est.kf_t))
         for lid in list(self.tracks):
             tr = self.tracks[lid]
             if tr.key is None or not tr.factor_indices:
                 continue
             lam = float(values.atVector(tr.key)[0])
             bad_depth = not (1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m)
-            err = graph.reprojection_errors(tr, tr.frames(), values) * fx
+            err = graph.reprojection_errors(tr, tr.frames(), values, table) * fx
             if bad_depth or (err.size and err.max() > vc.outlier_px):
                 self._retire_key(tr, g, stamps, removals)
                 del self.tracks[lid]
