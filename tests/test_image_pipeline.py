@@ -64,3 +64,40 @@ def test_image_stage_on_real_static_stereo():
         # rectification-free sanity: right points are shifted left (positive depth)
         assert np.median(fr.uv[ok, 0] - fr.right_uv[ok, 0]) > 0
     assert min(n_right) > 30
+
+
+def test_worker_process_front_end_is_identical(sim_stereo):
+    """The KLT stage in a worker process (``vio.overlap``) hands the backend exactly
+    the packets the in-process stage gives: same ids, same coordinates, bit for bit."""
+    from vio.overlap import overlapped
+    from vio.run import _image_files
+    from vio.sync import packets
+    from vio.tracking import ImageStage
+    d = sim_stereo
+    args = (d.cam0.calib, d.cam1.calib, PipelineConfig().frontend)
+    stamps = d.cam0.t_ns[:25]
+    files = _image_files(d, True, len(stamps))
+    local = ImageStage(*args)
+    expected = [local(p) for p in packets(d.imu, stamps, 0.0, image_files=files)]
+    got = list(overlapped(ImageStage, args, packets(d.imu, stamps, 0.0, image_files=files), depth=3))
+    assert [p.index for p in got] == [p.index for p in expected]
+    for a, b in zip(got, expected):
+        for name in ("ids", "uv", "velocity", "row", "right_uv", "right_velocity"):
+            np.testing.assert_array_equal(getattr(a.features, name), getattr(b.features, name))
+
+
+def test_worker_process_reports_bad_image(sim_stereo, tmp_path):
+    """A missing image inside the worker surfaces as the same one-line DataError."""
+    from vio.errors import DataError
+    from vio.overlap import overlapped
+    from vio.run import _image_files
+    from vio.sync import packets
+    from vio.tracking import ImageStage
+    d = sim_stereo
+    stamps = d.cam0.t_ns[:6]
+    files = _image_files(d, True, len(stamps))
+    files[4] = (tmp_path / "gone.png", files[4][1])
+    it = overlapped(ImageStage, (d.cam0.calib, d.cam1.calib, None),
+                    packets(d.imu, stamps, 0.0, image_files=files))
+    with pytest.raises(DataError, match=r"gone\.png: image missing or unreadable"):
+        list(it)

@@ -19,6 +19,10 @@ class DataError(ValueError):
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {message}")
 
+    def __reduce__(self):
+        """Picklable (errors cross from the front-end worker process, ``vio.overlap``)."""
+        return type(self), (self.path, self.message, self.line)
+
 
 class ConfigError(ValueError):
     """A configuration file or dictionary that does not match its dataclass."""

@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -15,7 +17,7 @@ from vio.config import from_dict, read_yaml
 from vio.conventions import quat_wxyz_from_rot
 from vio.io.euroc import EurocDataset, LoadOptions, load_euroc
 from vio.pipeline import FrameOutput, Pipeline, PipelineConfig
-from vio.sync import packets
+from vio.sync import FramePacket, packets
 from vio.trajectory import write_tum
 
 log = logging.getLogger(__name__)
@@ -46,9 +48,33 @@ class RunResult:
         return t, p, q
 
 
-def load_config(path: Path | None, td: float | None = None) -> PipelineConfig:
-    """Defaults, overridden by a YAML file (strict keys) and by ``--td``."""
-    cfg = from_dict(PipelineConfig, read_yaml(path), str(path)) if path else PipelineConfig()
+# Image modes see ~150 KLT tracks at the camera rate (feature-track datasets ~20-40):
+# keyframes at most every 0.12 s (every third frame at 20 Hz) and 80 landmarks in the
+# window keep stereo above 1.5x real time at 752x480 on two cores with ATE ~1 cm
+# (benchmarks/bench_image_modes.py). A YAML file overrides these like any default.
+MODE_DEFAULTS: dict[str, dict] = {
+    mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
+    for mode in ("mono", "stereo", "hybrid")
+}
+
+
+def _merged(base: dict, over: dict) -> dict:
+    """``over`` laid onto ``base`` key by key (nested mappings merged, not replaced)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def default_config(mode: str = "features") -> PipelineConfig:
+    """The defaults of one ``--mode`` (``MODE_DEFAULTS`` on top of the dataclass defaults)."""
+    return from_dict(PipelineConfig, MODE_DEFAULTS.get(mode, {}))
+
+
+def load_config(path: Path | None, td: float | None = None, mode: str = "features") -> PipelineConfig:
+    """The mode's defaults, overridden by a YAML file (strict keys) and by ``--td``."""
+    raw = _merged(MODE_DEFAULTS.get(mode, {}), read_yaml(path) if path else {})
+    cfg = from_dict(PipelineConfig, raw, str(path) if path else "defaults")
     if td is not None:
         cfg = dataclasses.replace(cfg, td_s=td)
     return cfg
@@ -85,27 +111,38 @@ def _image_files(data: EurocDataset, stereo: bool, n: int) -> list[tuple]:
     return out
 
 
-def run_dataset(data: EurocDataset, cfg: PipelineConfig, max_frames: int | None = None,
+def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: np.ndarray,
+                   pipe: Pipeline) -> tuple[Iterator[FramePacket], Callable | None]:
+    """The packets of a run and the stage applied to each in this process (None when
+    there is none, or when the KLT front end runs in a worker process, ``vio.overlap``)."""
+    if mode == "features":
+        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)]), None
+    stereo = mode in STEREO_MODES
+    it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)))
+    if mode in ("direct", "hybrid"):
+        from vio.direct.mode import attach
+        return it, attach(pipe, data, cfg, hybrid=mode == "hybrid")
+    from vio.tracking import ImageStage
+    args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
+    if not cfg.frontend.worker_process or os.name == "nt":   # no select() on pipes there
+        return it, ImageStage(*args)
+    from vio.overlap import overlapped
+    return overlapped(ImageStage, args, it), None
+
+
+def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frames: int | None = None,
                 sinks: list | None = None, progress: bool = False, mode: str = "auto") -> RunResult:
     """Run the pipeline over a loaded dataset (feature tracks, or images through the
-    KLT front end in ``mono``/``stereo`` mode)."""
+    KLT front end in ``mono``/``stereo`` mode, or the photometric ``direct``/``hybrid``
+    modes). ``cfg`` None: ``default_config(mode)``."""
     mode = resolve_mode(data, mode)
-    stereo = mode in STEREO_MODES
-    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg, data.cam1.calib if stereo else None)
+    cfg = default_config(mode) if cfg is None else cfg
+    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg,
+                    data.cam1.calib if mode in STEREO_MODES else None)
     pipe.sinks.extend(sinks or [])
     res = RunResult()
     stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
-    stage = None
-    if mode == "features":
-        it = packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)])
-    else:
-        if mode in ("direct", "hybrid"):
-            from vio.direct.mode import attach
-            stage = attach(pipe, data, cfg, hybrid=mode == "hybrid")
-        else:
-            from vio.tracking import ImageStage
-            stage = ImageStage(data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
-        it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)))
+    it, stage = _packet_stream(data, cfg, mode, stamps, pipe)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -166,7 +203,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     else:
         data = load_euroc(args.dataset, LoadOptions(trim_to_imu=args.trim))
     mode = resolve_mode(data, args.mode)
-    cfg = load_config(args.config, args.td)
+    cfg = load_config(args.config, args.td, mode)
     sinks = []
     if args.rerun or args.rrd:
         from vio.viz import RerunSink

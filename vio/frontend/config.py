@@ -46,6 +46,9 @@ class FrontendConfig:
     stereo_epipolar_px: float = 1.5    # max distance to the epipolar line
     min_depth_m: float = 0.1           # closer triangulations reject the match
     max_depth_m: float = 100.0         # farther ones keep the match, depth NaN
+    # concurrency (vio.overlap): track in a worker process while the backend solves;
+    # the output is identical either way, only the wall time changes
+    worker_process: bool = True
 
     def __post_init__(self) -> None:
         positive = ("max_features", "min_dist_px", "lk_window", "lk_max_iter", "block_size",

@@ -1,0 +1,164 @@
+"""Run an image stage in a worker process, overlapped with the backend.
+
+The GIL is held during iSAM2 updates, so a thread cannot overlap the KLT front end
+with the backend; a process can. The main process keeps iterating the sync layer's
+packets and sends up to ``depth`` of them ahead to a worker that applies the stage
+(image loading, KLT, stereo matching) and sends the processed packets back. The
+worker is a pure function of the packet sequence and handles it strictly in order,
+so the backend sees exactly the packets the in-process stage would give: results do
+not depend on timing (``tests/test_image_pipeline.py`` checks equality).
+
+The worker is a fresh interpreter (``python -m vio.overlap``) talking pickles over
+its stdin/stdout: unlike ``multiprocessing`` it neither forks a process that holds
+the parent's threads and locks (which deadlocks) nor re-runs the user's main script
+(spawn does, and an unguarded script then recurses). Failures in the worker (an
+unreadable image, a bad calibration) come back as the original exception, re-raised
+in the main process with the same one-line message.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import select
+import struct
+import subprocess
+import sys
+import traceback
+from collections import deque
+from typing import IO, Any, Callable, Iterable, Iterator
+
+log = logging.getLogger(__name__)
+
+_HEADER = struct.Struct("<Q")
+
+
+class WorkerError(RuntimeError):
+    """The front-end worker died, stalled, or raised an exception that cannot cross
+    processes (its type and message are kept)."""
+
+
+def _send(stream: IO[bytes], obj: Any) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(_HEADER.pack(len(data)) + data)
+    stream.flush()
+
+
+def _read_exact(stream: IO[bytes], n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = stream.read(n - len(buf))
+        if not chunk:
+            raise EOFError
+        buf += chunk
+    return buf
+
+
+def _recv(stream: IO[bytes]) -> Any:
+    (n,) = _HEADER.unpack(_read_exact(stream, _HEADER.size))
+    return pickle.loads(_read_exact(stream, n))
+
+
+def _describe(exc: BaseException) -> tuple[BaseException, str]:
+    """The exception itself when it survives pickling (else a ``WorkerError`` with its
+    type and message) and the formatted traceback, for the main process."""
+    tb = "".join(traceback.format_exception(exc))
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:  # noqa: BLE001 - an exception that cannot cross processes
+        exc = WorkerError(f"{type(exc).__name__}: {exc}")
+    return exc, tb
+
+
+def worker_main() -> None:
+    """Worker loop: read (factory, args), then packets until None; answer each with
+    ("ok", packet) or ("error", (exception, traceback)) and stop at the first error."""
+    out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    sys.stdout = sys.stderr          # stray prints must not corrupt the protocol
+    inp = sys.stdin.buffer
+    try:
+        import cv2
+        cv2.setNumThreads(1)         # two cores: leave the other one to the backend
+        factory, args = _recv(inp)
+        stage = factory(*args)
+    except BaseException as exc:  # noqa: BLE001 - reported to the main process
+        _send(out, ("error", _describe(exc)))
+        return
+    while True:
+        try:
+            pkt = _recv(inp)
+        except EOFError:
+            return
+        if pkt is None:
+            return
+        try:
+            _send(out, ("ok", stage(pkt)))
+        except BaseException as exc:  # noqa: BLE001 - reported to the main process
+            _send(out, ("error", _describe(exc)))
+            return
+
+
+def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
+               packets: Iterable[Any], depth: int = 4,
+               timeout_s: float = 120.0) -> Iterator[Any]:
+    """Yield ``factory(*args)(pkt)`` for every packet, computed in a worker process.
+
+    ``factory`` (an importable callable) and ``args`` must be picklable, as packets
+    are. At most ``depth`` packets are in flight; ``timeout_s`` is the longest wait
+    for one result.
+    """
+    proc = subprocess.Popen([sys.executable, "-m", "vio.overlap"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE)
+    pending: deque[int] = deque()
+    source = iter(packets)
+    try:
+        _send(proc.stdin, (factory, args))
+        done = False
+        while True:
+            while not done and len(pending) < depth:
+                pkt = next(source, None)
+                if pkt is None:
+                    done = True
+                    break
+                _send(proc.stdin, pkt)
+                pending.append(pkt.index)
+            if not pending:
+                return
+            yield _receive(proc, timeout_s)
+            pending.popleft()
+    finally:
+        _shutdown(proc)
+
+
+def _receive(proc: subprocess.Popen, timeout_s: float) -> Any:
+    ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
+    if not ready:
+        raise WorkerError(f"front-end worker gave no result in {timeout_s:.0f} s")
+    try:
+        kind, payload = _recv(proc.stdout)
+    except EOFError:
+        raise WorkerError(f"front-end worker died (exit code {proc.wait(5.0)})") from None
+    if kind == "error":
+        exc, tb = payload
+        log.debug("front-end worker traceback:\n%s", tb)
+        raise exc
+    return payload
+
+
+def _shutdown(proc: subprocess.Popen) -> None:
+    try:
+        _send(proc.stdin, None)
+        proc.stdin.close()
+    except (BrokenPipeError, OSError, ValueError):
+        pass
+    try:
+        proc.wait(timeout=5.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=5.0)
+    proc.stdout.close()
+
+
+if __name__ == "__main__":
+    worker_main()
