@@ -23,6 +23,7 @@ from vio.direct.config import DirectConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
+from vio.memory import trim_heap
 from vio.sync import FramePacket
 
 log = logging.getLogger(__name__)
@@ -32,9 +33,12 @@ log = logging.getLogger(__name__)
 class PipelineConfig:
     """``td_s``: camera-to-IMU offset applied by the sync layer (s);
     ``backend``: estimator parameters; ``frontend``: KLT tracking (image modes);
-    ``direct``: photometric points (``--mode direct|hybrid``)."""
+    ``direct``: photometric points (``--mode direct|hybrid``); ``trim_heap_every_s``:
+    return freed heap memory to the OS every so many seconds of data (0: never; see
+    ``vio.memory``), which keeps the resident size of long runs flat."""
 
     td_s: float = 0.0
+    trim_heap_every_s: float = 60.0
     backend: BackendConfig = field(default_factory=BackendConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     direct: DirectConfig = field(default_factory=DirectConfig)
@@ -78,6 +82,7 @@ class Pipeline:
         self._recent: deque[FramePacket] = deque()
         self._kf_features: FeatureFrame | None = None
         self._kf_t: int = 0
+        self._trim_t: int | None = None
         self.n_keyframes = 0
 
     # -------------------------------------------------------------- helpers
@@ -123,6 +128,7 @@ class Pipeline:
         return self._step(pkt, t0)
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
+        self._maybe_trim(pkt.t_ns)
         self.est.add_imu(pkt.imu)
         still = self._still()
         if self._is_keyframe(pkt):
@@ -131,6 +137,16 @@ class Pipeline:
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0)
         return self._emit(pkt, False, still, t0)
+
+    def _maybe_trim(self, t_ns: int) -> None:
+        every = self.cfg.trim_heap_every_s
+        if every <= 0:
+            return
+        if self._trim_t is None:
+            self._trim_t = t_ns
+        elif (t_ns - self._trim_t) * 1e-9 >= every:
+            trim_heap()
+            self._trim_t = t_ns
 
     def _features(self, pkt: FramePacket) -> FeatureFrame:
         if pkt.features is not None:
