@@ -26,7 +26,22 @@ class InitConfig:
     (50-ms mean gyro within ``max_gyro_std`` rad/s and accel within ``max_accel_std``
     m/s^2 of the window mean,
     features below ``max_still_flow_px`` px/frame). Otherwise dynamic initialization
-    (visual-inertial alignment) runs on ``dynamic_window_s`` of keyframes."""
+    (visual-inertial alignment, ``vio.backend.dynamic_init``) runs on ``dynamic_window_s``
+    of keyframes every ``dynamic_step_s``, using the ``dynamic_max_tracks`` longest tracks.
+    Its inverse depths are bounded to ``[1/dynamic_max_depth_m, 10]`` 1/m (the bound
+    makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
+    ``dynamic_gyro_bias_sigma`` rad/s and its reprojection errors a Huber kernel at
+    ``dynamic_huber_px``. A solution is rejected (the pipeline waits for a later window)
+    with fewer than ``dynamic_min_landmarks`` tracks, a free-gravity norm off by more than
+    ``dynamic_max_gravity_error`` (relative), fewer than ``dynamic_min_inlier_ratio``
+    inlier observations, a median inlier reprojection error above ``dynamic_max_reproj_px``,
+    a velocity standard deviation above ``dynamic_max_v0_sigma`` m/s, an acceleration
+    varying by less than ``dynamic_min_excitation`` m/s^2 RMS (no scale) unless the
+    window is still (rotation alone explains the tracks within
+    ``dynamic_max_still_parallax_px`` and ``|v0| <= dynamic_max_v0_sigma``), a batch mean factor
+    error above ``dynamic_max_mean_error``, or a batch solution further than
+    ``dynamic_max_v0_disagreement`` m/s / ``dynamic_max_gravity_disagreement_deg`` from
+    the alignment."""
 
     static_window_s: float = 0.5
     max_gyro_std: float = 0.05
@@ -34,6 +49,20 @@ class InitConfig:
     max_still_flow_px: float = 1.0
     dynamic_window_s: float = 1.5
     dynamic_step_s: float = 0.1
+    dynamic_max_tracks: int = 80
+    dynamic_min_landmarks: int = 15
+    dynamic_max_depth_m: float = 30.0
+    dynamic_gyro_bias_sigma: float = 0.1
+    dynamic_huber_px: float = 2.0
+    dynamic_max_gravity_error: float = 0.03
+    dynamic_min_inlier_ratio: float = 0.8
+    dynamic_max_reproj_px: float = 2.5
+    dynamic_max_v0_sigma: float = 0.1
+    dynamic_min_excitation: float = 0.1
+    dynamic_max_still_parallax_px: float = 4.0
+    dynamic_max_mean_error: float = 20.0
+    dynamic_max_v0_disagreement: float = 0.15
+    dynamic_max_gravity_disagreement_deg: float = 1.5
     prior_pos_sigma: float = 1e-3
     prior_yaw_sigma: float = 1e-3
     prior_rp_sigma: float = 0.02

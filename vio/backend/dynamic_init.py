@@ -1,20 +1,37 @@
 """Dynamic initialization for sequences that start moving (VINS-Mono's role of
 visual-inertial alignment, solved here without a separate SfM stage).
 
-1. Keyframes every ``step`` over a short window; gyro preintegration gives the
-   relative rotations ``R_k`` and position increments ``dp_k`` in the first body
-   frame (``b0``), for the current gyro-bias guess.
-2. Linear alignment (closed form in the spirit of Martinelli's): unknowns are the
-   velocity ``v0`` and gravity ``g0`` in ``b0`` and one depth per landmark. With
-   ``p_k = v0 t_k + g0 t_k^2 / 2 + dp_k`` every observation gives
-   ``[m_j]x R_cj^T (p_ca + R_ca m_a d - p_cj) = 0``, linear in the unknowns.
-   Gravity is then fixed to its known magnitude and the rest solved again.
-3. A batch Levenberg-Marquardt over the window (``CombinedImuFactor`` + landmark
-   factors) refines poses, velocities, inverse depths and the IMU biases (the
-   gyro bias included), starting from the aligned solution.
+1. Keyframes every ``step`` over a short window; per-interval IMU preintegration at zero
+   bias. For a gyro bias ``bg`` the chained increments (bias-corrected to first order by
+   GTSAM's ``predict``) give rotations ``R_k`` and position increments ``dp_k`` in the
+   first body frame b0, and ``p_k = v0 t_k + g0 t_k^2 / 2 + dp_k``.
+2. Visual-inertial alignment over ``x = [v0, g0, bg]`` with one inverse depth ``rho`` per
+   landmark, anchored in its first keyframe ``a``. In camera ``j`` the point is
+   ``P_j ~ R_cj^T R_ca m_a + rho R_cj^T (p_ca - p_cj)`` (linear in ``v0, g0``). For a given
+   ``x`` every ``rho`` has a closed form (least squares of ``[m_j]x P_j = 0``, whose size
+   is the angular error since ``P_j`` is scaled by the anchor depth), so ``x`` minimises
+   the Huber-robust reprojection errors of the reduced problem (variable projection):
+   from three starts at zero bias, then with ``bg`` free (prior) after dropping outliers.
+   ``|g0|`` stays free; its deviation from ``g`` is a consistency check.
+3. A batch Levenberg-Marquardt over the window (``CombinedImuFactor`` + landmark factors,
+   inlier observations) refines poses, velocities, inverse depths and IMU biases.
 
-The result is the state of the window's first keyframe in a gravity-aligned
-world with zero yaw; the pipeline then replays the window through the estimator.
+Why not a linear solve: the earlier closed form (Martinelli-style, unknowns ``v0``,
+``g0`` and metric depths ``d``) minimised ``[m_j]x R_cj^T (p_ca + R_ca m_a d - p_cj)``, an
+algebraic error proportional to the landmark's distance. Least squares then prefers a
+shrunken scene (depths -> 0, ``v0`` -> 0, motion explained by ``g0``): on the simulated
+soak start (seeds 7 and 9) it returned ``|v0 - v_true|`` ~ 0.7-0.9 m/s at 0.7-1 m/s and
+the batch LM, started there, stopped in a local minimum.
+
+Acceptance checks (``InitConfig.dynamic_*``) make the pipeline wait for a better window
+instead of starting wrong: landmark count, ``|g0|`` before it is fixed, inlier ratio and
+median reprojection error, the standard deviation of ``v0``, the IMU excitation (a
+constant velocity or acceleration leaves the scale free: then only a window without
+translation parallax is accepted), the batch error, and agreement of the batch solution
+with the alignment (velocity and gravity direction).
+
+The result is the state of the window's first keyframe in a gravity-aligned world with
+zero yaw; the pipeline then replays the window through the estimator.
 """
 
 from __future__ import annotations
@@ -27,14 +44,16 @@ import numpy as np
 
 from factors.landmark import landmark_factor, make_track
 from factors.robust import RobustKernel
-from vio.backend.config import BackendConfig
+from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.init import InitialState, gravity_aligned_rotation
-from vio.imu import combined_params, integrate
+from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
+from vio.backend.vi_align import (WindowObs, ViSolution, window_tracks, window_observations, preintegrate_window, chain_increments, AlignProblem, excitation, rotation_only_px, vi_align)
 
 log = logging.getLogger(__name__)
 X, V, B, L = (gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B,
               gtsam.symbol_shorthand.L)
+NAN = float("nan")
 
 
 @dataclass(frozen=True)
@@ -49,10 +68,23 @@ class InitWindow:
 
 @dataclass(frozen=True)
 class AlignResult:
+    """Outcome of :func:`align`. ``gravity_error``: relative ``|g0|`` error of the free
+    alignment; ``v0_sigma`` (m/s): largest standard deviation of ``v0``; ``reproj_px``:
+    median reprojection error of the inliers; ``inlier_ratio`` of the observations;
+    ``v0_disagreement`` (m/s) and ``gravity_disagreement_deg`` between the batch LM and
+    the alignment; ``excitation`` (m/s^2) the variation of the IMU's acceleration over
+    the window. NaN where not reached."""
+
     ok: bool
     state: InitialState | None
     reason: str
-    gravity_error: float = float("nan")
+    gravity_error: float = NAN
+    v0_sigma: float = NAN
+    reproj_px: float = NAN
+    inlier_ratio: float = NAN
+    v0_disagreement: float = NAN
+    gravity_disagreement_deg: float = NAN
+    excitation: float = NAN
 
 
 def init_window(packets: list, step_s: float) -> InitWindow:
@@ -72,155 +104,122 @@ def init_window(packets: list, step_s: float) -> InitWindow:
                       tuple(segs))
 
 
-def _tracks(win: InitWindow, min_obs: int = 3, max_tracks: int = 80
-            ) -> dict[int, list[tuple[int, np.ndarray]]]:
-    """The ``max_tracks`` longest tracks seen in at least ``min_obs`` keyframes."""
-    obs: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for k, fr in enumerate(win.features):
-        for lid, uv in zip(fr.ids, fr.uv):
-            obs.setdefault(int(lid), []).append((k, np.asarray(uv, float)))
-    best = sorted((l for l, o in obs.items() if len(o) >= min_obs), key=lambda l: -len(obs[l]))
-    return {l: obs[l] for l in best[:max_tracks]}
-
-
-def _preintegrate(win: InitWindow, params, bias) -> tuple[list[np.ndarray], list[np.ndarray], list]:
-    """Rotations ``R_k`` and position increments ``dp_k`` (frame b0, zero initial
-    velocity and no gravity), plus the per-interval preintegrations."""
-    R, dp, pims = [np.eye(3)], [np.zeros(3)], []
-    acc_R, acc_p, acc_v = np.eye(3), np.zeros(3), np.zeros(3)
-    for seg in win.imu:
-        pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
-        integrate(pim, seg)
-        dt = pim.deltaTij()
-        acc_p = acc_p + acc_v * dt + acc_R @ pim.deltaPij()
-        acc_v = acc_v + acc_R @ pim.deltaVij()
-        acc_R = acc_R @ pim.deltaRij().matrix()
-        R.append(acc_R.copy())
-        dp.append(acc_p.copy())
-        pims.append(pim)
-    return R, dp, pims
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _linear_align(win: InitWindow, cam: CameraCalib, R: list, dp: list, tracks: dict,
-                  fixed_g: np.ndarray | None = None):
-    """Least-squares ``[v0, g0, depths]`` (or ``[v0, depths]`` with ``fixed_g``)."""
-    t = np.array([(s - win.t_ns[0]) * 1e-9 for s in win.t_ns])
-    Rbc, tbc = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
-    lids = list(tracks)
-    ng = 0 if fixed_g is not None else 3
-    n = 3 + ng + len(lids)
-    rows, rhs = [], []
-    for li, lid in enumerate(lids):
-        (a, uva), *rest = tracks[lid]
-        m_a = np.array([uva[0], uva[1], 1.0])
-        Rca = R[a] @ Rbc
-        for j, uvj in rest:
-            m_j = np.array([uvj[0], uvj[1], 1.0])
-            Aj = _skew(m_j) @ (R[j] @ Rbc).T
-            row = np.zeros((3, n))
-            row[:, 0:3] = Aj * (t[a] - t[j])
-            const = dp[a] - dp[j] + (R[a] - R[j]) @ tbc
-            if fixed_g is None:
-                row[:, 3:6] = Aj * 0.5 * (t[a] ** 2 - t[j] ** 2)
-            else:
-                const = const + 0.5 * (t[a] ** 2 - t[j] ** 2) * fixed_g
-            row[:, 3 + ng + li] = Aj @ (Rca @ m_a)
-            rows.append(row)
-            rhs.append(-Aj @ const)
-    A, b = np.vstack(rows), np.concatenate(rhs)
-    keep = np.ones(len(rows), bool)
-    for _ in range(3):  # least squares, then drop gross outliers (mistracks) and re-solve
-        rows_k = np.repeat(keep, 3)
-        x, *_ = np.linalg.lstsq(A[rows_k], b[rows_k], rcond=None)
-        res = np.linalg.norm((A @ x - b).reshape(-1, 3), axis=1)
-        thr = 5.0 * np.median(res[keep]) + 1e-12
-        if (res[keep] <= thr).all():
-            break
-        keep = res <= thr
-    v0 = x[0:3]
-    g0 = x[3:6] if fixed_g is None else fixed_g
-    return v0, g0, dict(zip(lids, x[3 + ng:]))
-
-
-def _batch_refine(win: InitWindow, cam: CameraCalib, cfg: BackendConfig,
-                  R_w_b0: gtsam.Rot3, R: list, dp: list, v0: np.ndarray, g0: np.ndarray,
-                  depths: dict, tracks: dict, pims: list) -> tuple[gtsam.Values, float]:
-    """Batch LM over the window from the aligned initial guess (world = gravity-aligned);
-    returns the solution and its mean error per factor."""
-    t = np.array([(s - win.t_ns[0]) * 1e-9 for s in win.t_ns])
+def _batch_refine(cam: CameraCalib, cfg: BackendConfig, pims: list, vi: ViSolution, obs: WindowObs,
+                  tracks: dict, gravity: np.ndarray) -> tuple[gtsam.Values, float]:
+    """Batch LM over the window from the alignment (world = gravity-aligned, zero yaw),
+    with the inlier observations only; returns the solution and its mean error per factor.
+    The alignment's keyframe positions are kept: the accelerometer bias starts at the
+    ``g0`` magnitude mismatch (``g_true - g0`` in b0), which makes them consistent with
+    the IMU factors' exact gravity."""
+    R, dp, dv = chain_increments(pims, vi.bg, gravity)
+    t = obs.t
+    R_w_b0 = gravity_aligned_rotation(-vi.g0)
     Rw = R_w_b0.matrix()
+    g_true = np.linalg.norm(gravity) * vi.g0 / np.linalg.norm(vi.g0)
     g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
     ic = cfg.init
     g.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(R_w_b0, np.zeros(3)), gtsam.noiseModel.Diagonal.Sigmas(
         np.array([0.1, 0.1, 1e-3, 1e-3, 1e-3, 1e-3]))))
     g.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, 0.1)])))
+        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.dynamic_gyro_bias_sigma)])))
     E = gtsam.symbol_shorthand.E(0)
     g.add(gtsam.PriorFactorPose3(E, cam.T_b_c, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     vals.insert(E, cam.T_b_c)
-    for k in range(len(win.t_ns)):
-        p = Rw @ (v0 * t[k] + 0.5 * g0 * t[k] ** 2 + dp[k])
+    for k in range(len(t)):
+        p = Rw @ (vi.v0 * t[k] + 0.5 * vi.g0 * t[k] ** 2 + dp[k])
         vals.insert(X(k), gtsam.Pose3(gtsam.Rot3(Rw @ R[k]), p))
-        vals.insert(V(k), Rw @ (v0 + g0 * t[k]) + Rw @ _vel_increment(pims, k))
-        vals.insert(B(k), gtsam.imuBias.ConstantBias())
+        vals.insert(V(k), Rw @ (vi.v0 + vi.g0 * t[k] + dv[k]))
+        vals.insert(B(k), gtsam.imuBias.ConstantBias(R[k].T @ (g_true - vi.g0), vi.bg))
         if k > 0:
             g.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pims[k - 1]))
     sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
-    for lid, obs in tracks.items():
-        d = depths.get(lid, np.nan)
-        if not (np.isfinite(d) and cfg.vision.min_depth_m < d < cfg.vision.max_depth_m):
+    lo, hi = 1.0 / cfg.vision.max_depth_m, 1.0 / cfg.vision.min_depth_m
+    for li, lid in enumerate(obs.ids):
+        sel = (obs.lm == li) & vi.mask
+        if sel.sum() < 2 or not lo < vi.rho[li] < hi:
             continue
-        (a, uva), *rest = obs
-        tr = make_track(X(a), uva, [X(j) for j, _ in rest], np.array([uv for _, uv in rest]))
+        a, uva = tracks[lid][0]
+        tr = make_track(X(a), uva, [X(int(j)) for j in obs.j[sel]], obs.uv[sel])
         g.add(landmark_factor(tr, L(lid), E, sigma, cfg.vision.model, RobustKernel("huber")))
-        vals.insert(L(lid), np.array([1.0 / d]))
+        vals.insert(L(lid), np.array([vi.rho[li]]))
     params_lm = gtsam.LevenbergMarquardtParams()
     params_lm.setMaxIterations(30)
     est = gtsam.LevenbergMarquardtOptimizer(g, vals, params_lm).optimize()
     return est, g.error(est) / max(1, g.size())
 
 
-def _vel_increment(pims: list, k: int) -> np.ndarray:
-    """Velocity increment from the IMU alone up to keyframe k, in b0."""
-    acc_R, acc_v = np.eye(3), np.zeros(3)
-    for pim in pims[:k]:
-        acc_v = acc_v + acc_R @ pim.deltaVij()
-        acc_R = acc_R @ pim.deltaRij().matrix()
-    return acc_v
+def _reject(reason: str, **diag) -> AlignResult:
+    return AlignResult(False, None, reason, **diag)
 
 
-def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendConfig,
-          min_landmarks: int = 15, max_gravity_error: float = 0.15,
-          max_mean_error: float = 20.0) -> AlignResult:
+def _vi_checks(prob: AlignProblem, vi: ViSolution, ic: InitConfig, gerr: float
+               ) -> tuple[str | None, dict]:
+    """Reason to reject the alignment (or None), and its diagnostics."""
+    err_px = np.linalg.norm(vi.r[vi.mask], axis=1) * prob.fx
+    diag = dict(gravity_error=gerr, inlier_ratio=float(vi.mask.mean()),
+                reproj_px=float(np.median(err_px)) if err_px.size else NAN,
+                v0_sigma=float(np.sqrt(max(np.linalg.eigvalsh(vi.cov[:3, :3]).max(), 0.0))),
+                excitation=excitation(prob.pims, vi.bg, prob.gravity, prob.obs.t))
+    if not gerr <= ic.dynamic_max_gravity_error:
+        return (f"gravity magnitude off by {100 * gerr:.1f}% (> {100 * ic.dynamic_max_gravity_error:.0f}%):"
+                " inconsistent alignment"), diag
+    if not diag["inlier_ratio"] >= ic.dynamic_min_inlier_ratio:
+        return f"only {100 * diag['inlier_ratio']:.0f}% inlier observations", diag
+    if not diag["reproj_px"] <= ic.dynamic_max_reproj_px:
+        return f"median reprojection error {diag['reproj_px']:.2f} px", diag
+    if not diag["v0_sigma"] <= ic.dynamic_max_v0_sigma:
+        return (f"initial velocity poorly observable (sigma {diag['v0_sigma']:.3f} m/s: too little"
+                " acceleration or parallax)"), diag
+    if diag["excitation"] < ic.dynamic_min_excitation:
+        # no scale from the IMU: only a window without translation is safe (v0 ~ 0)
+        parallax = rotation_only_px(prob, vi)
+        if not (parallax <= ic.dynamic_max_still_parallax_px
+                and np.linalg.norm(vi.v0) <= ic.dynamic_max_v0_sigma):
+            return (f"acceleration too constant for the scale ({diag['excitation']:.3f} m/s^2)"
+                    f" while the camera translates (parallax {parallax:.1f} px)"), diag
+    return None, diag
+
+
+def _agreement(est: gtsam.Values, vi: ViSolution, g_norm: float) -> tuple[float, float]:
+    """|v0| difference (m/s) and gravity angle (deg) between the batch LM and the alignment, in b0."""
+    R0 = est.atPose3(X(0)).rotation()
+    dv = float(np.linalg.norm(R0.unrotate(est.atVector(V(0))) - vi.v0))
+    g_lm = R0.unrotate(np.array([0.0, 0.0, -g_norm]))
+    cos = g_lm @ vi.g0 / (np.linalg.norm(g_lm) * np.linalg.norm(vi.g0))
+    return dv, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendConfig
+          ) -> AlignResult:
     """Estimate the first keyframe's state from a moving window (see module docstring)."""
-    tracks = _tracks(win)
-    if len(tracks) < min_landmarks:
-        return AlignResult(False, None, f"only {len(tracks)} landmarks seen in >= 3 keyframes")
+    ic = cfg.init
+    tracks = window_tracks(win, max_tracks=ic.dynamic_max_tracks)
+    if len(tracks) < ic.dynamic_min_landmarks:
+        return _reject(f"only {len(tracks)} landmarks seen in >= 3 keyframes")
     params = combined_params(imu_calib, cfg.imu)
-    g_norm = cfg.imu.gravity
-    R, dp, pims = _preintegrate(win, params, gtsam.imuBias.ConstantBias())
-    v0, g0, _ = _linear_align(win, cam, R, dp, tracks)
-    gerr = abs(np.linalg.norm(g0) - g_norm) / g_norm
-    if not np.isfinite(gerr) or gerr > max_gravity_error:
-        return AlignResult(False, None, f"gravity magnitude {np.linalg.norm(g0):.2f} m/s^2 "
-                                        f"inconsistent (too little excitation?)", gerr)
-    g0 = g0 / np.linalg.norm(g0) * g_norm
-    v0, _, depths = _linear_align(win, cam, R, dp, tracks, fixed_g=g0)
-    R_w_b0 = gravity_aligned_rotation(-g0)
+    gravity, g_norm = np.asarray(params.n_gravity, float), cfg.imu.gravity
+    pims = preintegrate_window(win, params)
+    obs = window_observations(win, tracks)
+    fx = cam.intrinsics[0]
+    prob = AlignProblem(obs, pims, cam, gravity, ic)
+    vi = vi_align(prob, ic, cfg.vision.outlier_px / fx, cfg.vision.pixel_sigma / fx)
+    gerr = abs(np.linalg.norm(vi.g0) - g_norm) / g_norm
+    reason, diag = _vi_checks(prob, vi, ic, gerr)
+    if reason is not None:
+        return _reject(reason, **diag)
     try:
-        est, mean_err = _batch_refine(win, cam, cfg, R_w_b0, R, dp, v0, g0, depths,
-                                      tracks, pims)
+        est, mean_err = _batch_refine(cam, cfg, pims, vi, obs, tracks, gravity)
     except RuntimeError as exc:
-        return AlignResult(False, None, f"batch refinement failed: {str(exc).splitlines()[0]}", gerr)
-    if not mean_err < max_mean_error:
-        return AlignResult(False, None, f"batch refinement left a mean factor error of "
-                                        f"{mean_err:.1f} (> {max_mean_error})", gerr)
+        return _reject(f"batch refinement failed: {str(exc).splitlines()[0]}", **diag)
+    dv, dg = _agreement(est, vi, g_norm)
+    diag.update(v0_disagreement=dv, gravity_disagreement_deg=dg)
+    if not mean_err < ic.dynamic_max_mean_error:
+        return _reject(f"batch refinement left a mean factor error of {mean_err:.1f}", **diag)
+    if not (dv <= ic.dynamic_max_v0_disagreement and dg <= ic.dynamic_max_gravity_disagreement_deg):
+        return _reject(f"batch and alignment disagree ({dv:.3f} m/s, {dg:.2f} deg)", **diag)
     state = InitialState(win.t_ns[0], est.atPose3(X(0)), est.atVector(V(0)),
                          est.atConstantBias(B(0)), "dynamic")
-    log.info("dynamic initialization: |g| error %.1f%%, v0 %s, gyro bias %s", 100 * gerr,
-             np.round(state.v_w, 3), np.round(state.bias.gyroscope(), 4))
-    return AlignResult(True, state, "ok", gerr)
+    log.info("dynamic initialization: |g| error %.1f%%, v0 %s (sigma %.3f m/s), gyro bias %s",
+             100 * gerr, np.round(state.v_w, 3), diag["v0_sigma"],
+             np.round(state.bias.gyroscope(), 4))
+    return AlignResult(True, state, "ok", **diag)
