@@ -103,12 +103,12 @@ def soak_worker(job: dict) -> dict:
     crash = None
     for i, pkt in enumerate(packets(data.imu, data.cam0.t_ns, cfg.td_s, data.features)):
         try:
-            out = pipe.process(pkt)
+            outs = pipe.process(pkt)
         except Exception as exc:  # noqa: BLE001 - report the crash with the samples so far
             crash = {"frame": i, "data_s": (pkt.t_ns - data.cam0.t_ns[0]) * 1e-9,
                      "error": f"{type(exc).__name__}: {' '.join(str(exc).split())[:200]}"}
             break
-        if out is not None:
+        for out in outs:
             T = out.T_w_b
             t[k], p[k], q[k] = out.t_ns, T.translation(), quat_wxyz_from_rot(T.rotation())
             ms[k] = out.seconds * 1e3

@@ -22,15 +22,16 @@ def main(path: str) -> None:
     pipe = Pipeline(data.imu_calib, data.cam0.calib, PipelineConfig())
     frames = iter(zip(data.cam0.t_ns, data.features))
     nxt = next(frames, None)
-    n_out = 0
+    n_out, out = 0, None
     for t, w, a in zip(data.imu.t_ns, data.imu.gyro, data.imu.accel):
         sync.add_imu(int(t), w, a)
         while nxt is not None and nxt[0] <= t:       # the camera delivers its frame
             sync.add_frame(int(nxt[0]), features=nxt[1])
             nxt = next(frames, None)
         while (res := sync.poll()).status is SyncStatus.READY:
-            out = pipe.process(res.packet)
-            n_out += out is not None
+            outs = pipe.process(res.packet)   # [] while initializing
+            n_out += len(outs)
+            out = outs[-1] if outs else out
     sync.close()
     print(f"{n_out} frames estimated; last position {out.T_w_b.translation().round(3)} m")
 

@@ -116,8 +116,10 @@ class Pipeline:
         return n == 0 or flow < ic.max_still_flow_px
 
     # ------------------------------------------------------------ main loop
-    def process(self, pkt: FramePacket) -> FrameOutput | None:
-        """Consume one packet; returns the frame's online estimate once initialized."""
+    def process(self, pkt: FramePacket) -> list[FrameOutput]:
+        """Consume one packet; returns the online estimates it produced: none while
+        initializing, this frame's once initialized, and at a dynamic initialization
+        every frame of the aligned window (replayed through the estimator)."""
         t0 = time.perf_counter()
         ic = self.cfg.backend.init
         self._recent.append(pkt)
@@ -125,7 +127,7 @@ class Pipeline:
             self._recent.popleft()
         if not self.est.initialized:
             return self._initialize(pkt, t0)
-        return self._step(pkt, t0)
+        return [self._step(pkt, t0)]
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
@@ -154,7 +156,7 @@ class Pipeline:
         return FeatureFrame(pkt.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
                             np.zeros(0))
 
-    def _initialize(self, pkt: FramePacket, t0: float) -> FrameOutput | None:
+    def _initialize(self, pkt: FramePacket, t0: float) -> list[FrameOutput]:
         """Static initialization when still, else dynamic alignment over a buffered
         window, which is then replayed through the estimator."""
         ic = self.cfg.backend.init
@@ -162,25 +164,24 @@ class Pipeline:
         imu, span = self._window_imu()
         if span >= ic.static_window_s - 1e-3 and self._still():
             if not self._start(static_init(imu, pkt.t_ns), pkt):
-                return None
+                return []
             self._init_buf = []
-            return self._emit(pkt, True, True, t0)
+            return [self._emit(pkt, True, True, t0)]
         buf = self._init_buf
         if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic_window_s:
-            return None
+            return []
         res = align(init_window(buf, ic.dynamic_step_s), self.cam, self.imu_calib, self.cfg.backend)
         if not res.ok:
             log.info("dynamic initialization not yet possible: %s", res.reason)
             keep = buf[-1].t_ns - int(ic.dynamic_window_s * 0.7e9)
             self._init_buf = [p for p in buf if p.t_ns >= keep]
-            return None
+            return []
         self._init_buf = []
         if not self._start(res.state, buf[0]):
-            return None
-        out = None
-        for p in buf[1:]:
-            out = self._step(p, t0)
-        return out
+            return []
+        # the alignment's cost is charged to the window's first frame
+        outs = [self._emit(buf[0], True, False, t0)]
+        return outs + [self._step(p, time.perf_counter()) for p in buf[1:]]
 
     def _start(self, state, pkt: FramePacket) -> bool:
         """Initialize the estimator; False (and still uninitialized) if the solver refuses."""

@@ -152,13 +152,14 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         res.frames_in += 1
         if stage is not None:
             pkt = stage(pkt)
-        out = pipe.process(pkt)
-        if out is not None:
-            res.outputs.append(out)
-            for k, (t, T) in pipe.est.window_poses().items():
-                res.smoothed[k] = (t, T)
+        outs = pipe.process(pkt)
+        res.outputs.extend(outs)
+        for out in outs:
             if out.landmark_ids is not None:
                 res.landmarks.update(zip(out.landmark_ids.tolist(), out.landmarks_w))
+        if outs:
+            for k, (t, T) in pipe.est.window_poses().items():
+                res.smoothed[k] = (t, T)
         if bar is not None:
             bar.update(1)
     if bar is not None:

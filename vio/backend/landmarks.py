@@ -28,7 +28,7 @@ class Obs:
 class Track:
     """A landmark's observations by keyframe index, its current inverse-depth key
     (anchored in keyframe ``anchor``), and the smoother indices of its factors
-    (cam0 factor and, with stereo, cam1 factor)."""
+    (one factor per landmark; with stereo it carries the cam1 observations too)."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
