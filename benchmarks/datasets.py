@@ -9,11 +9,16 @@ Mode ``features`` (feature tracks in ``cam0/features.csv``):
   IMU and ground truth, with a known td (5 ms) and a fixed per-sequence seed, plus
   its td = 0 twin (same seed, same excerpt) for the differential td error.
 
-Generated data goes to a cache folder (``$VIO_BENCH_CACHE`` or ``~/.cache/vio-bench``),
-keyed by a hash of the generator settings, never into the repository.
+Image modes (``stereo``, ``mono``): sequences rendered by ``vio.sim.simulate`` with
+fixed seeds never used in development (the lead developed on seed 0), 20 s at 752x480
+(quick: 8 s): stereo with td = 10 ms (seed 11), stereo with a 30 us/row rolling
+shutter and td = 10 ms (seed 12), mono (cam0 only) with td = 10 ms (seed 13).
 
-Image modes (``stereo``, ``mono``, ``direct``, ``hybrid``) are registered with the
-reason they are not run yet; adding one means adding a builder to ``MODES``.
+Generated data goes to a cache folder (``$VIO_BENCH_CACHE`` or ``~/.cache/vio-bench``),
+keyed by a hash of the generator settings (``TrackGenConfig`` or ``SimConfig``), never
+into the repository. ``direct`` and ``hybrid`` are registered with the reason they are
+not run yet; enabling one is one line in ``MODES``:
+``Mode("direct", partial(image_datasets, "direct"))``.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import json
 import os
 import shutil
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Callable
 
@@ -47,9 +53,10 @@ def cache_dir() -> Path:
 @dataclass(frozen=True)
 class DatasetSpec:
     """One benchmark input. ``gen``: ``TrackGenConfig`` keyword overrides for generated
-    data (``None`` for real data at ``source``); ``td_true_s``: known camera-IMU
-    offset (``None`` if unknown); ``twin``: name of the td = 0 twin of a generated
-    set; ``max_frames``: cap on processed frames (quick runs)."""
+    tracks (``None`` for real data at ``source``); ``sim``: ``SimConfig`` keywords of a
+    rendered image sequence (``source`` is then only a label); ``td_true_s``: known
+    camera-IMU offset (``None`` if unknown); ``twin``: name of the td = 0 twin of a
+    generated set; ``max_frames``: cap on processed frames (quick runs)."""
 
     name: str
     mode: str
@@ -59,10 +66,16 @@ class DatasetSpec:
     twin: str | None = None
     max_frames: int | None = None
     group: str = ""
+    sim: tuple[tuple[str, object], ...] | None = None
 
     @property
     def generated(self) -> bool:
-        return self.gen is not None
+        return self.gen is not None or self.sim is not None
+
+    def sim_config(self):
+        """The ``SimConfig`` of a rendered sequence."""
+        from vio.sim.config import SimConfig
+        return SimConfig(**dict(self.sim or ()))
 
     def gen_config(self):
         """The ``TrackGenConfig`` of a generated set."""
@@ -70,9 +83,11 @@ class DatasetSpec:
         return TrackGenConfig(**dict(self.gen or ()))
 
     def key(self) -> str:
-        """Cache key: source and every generator setting."""
+        """Cache key: source and every generator setting (every ``SimConfig`` field
+        for rendered sequences, so a changed simulator default makes a new folder)."""
         from vio.config import to_dict
-        blob = json.dumps([str(self.source), to_dict(self.gen_config())], sort_keys=True, default=str)
+        cfg = self.sim_config() if self.sim is not None else self.gen_config()
+        blob = json.dumps([str(self.source), to_dict(cfg)], sort_keys=True, default=str)
         return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 
@@ -108,13 +123,40 @@ def feature_datasets(quick: bool) -> list[DatasetSpec]:
     return specs
 
 
-_IMAGE_REASON = ("vio run --mode stereo|mono works, but the suite has no rendered-sequence "
-                 "builder and no image baseline yet (GenericStereoFactor) ")
-_DIRECT_REASON = "the photometric factors exist but --mode direct|hybrid is not wired into vio.run"
+SIM_LABEL = Path("vio.sim")   # ``source`` of rendered specs: a label (no folder), stable cache keys
+SIM_TD_S = 0.010
+# (name, seed, SimConfig overrides, stereo): the issue-#5 sequences, seeds unused in development
+SIM_SEQUENCES = (
+    ("stereo", 11, {}, True),
+    ("stereo-rs30us", 12, {"line_time_s": 30e-6}, True),
+    ("mono", 13, {}, False),
+)
+
+
+def sim_spec(mode: str, label: str, seed: int, seconds: float, stereo: bool = True,
+             td_s: float = SIM_TD_S, **sim) -> DatasetSpec:
+    """A rendered ``vio.sim`` sequence run in ``mode`` (``SimConfig`` keywords in ``sim``)."""
+    cfg = dict(seconds=seconds, seed=seed, td_s=td_s, stereo=stereo, **sim)
+    base = f"sim{seed}-{label}-{seconds:g}s"
+    return DatasetSpec(f"{base}/td{td_s * 1e3:g}ms", mode, SIM_LABEL, None, td_s,
+                       group=base, sim=tuple(sorted(cfg.items())))
+
+
+def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
+    """The rendered sequences a mode runs on: the stereo ones (global and rolling
+    shutter) for stereo-image modes, the cam0-only one for ``mono``; 20 s (quick: 8 s)."""
+    seconds = 8.0 if quick else 20.0
+    want_stereo = mode != "mono"
+    return [sim_spec(mode, label, seed, seconds, stereo, **extra)
+            for label, seed, extra, stereo in SIM_SEQUENCES if stereo == want_stereo]
+
+
+_DIRECT_REASON = ("another helper is wiring --mode direct|hybrid; enable with "
+                  "Mode(name, partial(image_datasets, name))")
 MODES: dict[str, Mode] = {
     "features": Mode("features", feature_datasets),
-    "stereo": Mode("stereo", None, _IMAGE_REASON),
-    "mono": Mode("mono", None, _IMAGE_REASON),
+    "stereo": Mode("stereo", partial(image_datasets, "stereo")),
+    "mono": Mode("mono", partial(image_datasets, "mono")),
     "direct": Mode("direct", None, _DIRECT_REASON),
     "hybrid": Mode("hybrid", None, _DIRECT_REASON),
 }
@@ -130,7 +172,7 @@ def registry(quick: bool = False, modes: list[str] | None = None) -> tuple[list[
             skipped[name] = mode.reason
             continue
         for s in mode.build(quick):
-            if not s.source.exists():
+            if s.sim is None and not s.source.exists():
                 skipped[s.name] = f"data not found at {s.source}"
             else:
                 specs.append(s)
@@ -142,15 +184,19 @@ def prepare(spec: DatasetSpec, cache: Path | None = None) -> Path:
     (generated now if missing; a ``.done`` marker guards against partial writes)."""
     if not spec.generated:
         return spec.source
-    from vio.sim.tracks import generate_tracks
     cache = cache or cache_dir()
-    out = cache / f"{spec.source.name}-{spec.key()}"
+    out = cache / f"{'sim' if spec.sim is not None else spec.source.name}-{spec.key()}"
     if (out / ".done").exists():
         return out
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    generate_tracks(spec.source, out, spec.gen_config())
+    if spec.sim is not None:
+        from vio.sim import simulate
+        simulate(out, spec.sim_config(), overwrite=True)
+    else:
+        from vio.sim.tracks import generate_tracks
+        generate_tracks(spec.source, out, spec.gen_config())
     (out / ".done").write_text(spec.name + "\n")
     return out
 

@@ -57,9 +57,17 @@ def _ms(m: dict) -> str:
     return " / ".join(_f(fm.get(k), 1) for k in ("mean", "p50", "p95", "max"))
 
 
+def is_image(run: dict) -> bool:
+    """Image-mode rows (rendered sequences through our KLT front end) are tabulated
+    apart from the feature-track rows; JSON written before modes existed is ``features``."""
+    return run.get("mode", "features") != "features"
+
+
 def accuracy_tables(acc: dict) -> list[str]:
+    """Accuracy and speed tables of the feature-track runs."""
+    runs = [r for r in acc.get("runs", []) if not is_image(r)]
     rows_a, rows_s = [], []
-    for r in acc.get("runs", []):
+    for r in runs:
         o, b = r["ours"], r["baseline"]
         err = o.get("error") or b.get("error")
         name = r["dataset"] + (f" ⚠ {err}" if err else "")
@@ -79,20 +87,70 @@ def accuracy_tables(acc: dict) -> list[str]:
     out += ["", "### Speed and memory (ms per frame: mean / p50 / p95 / max)", ""]
     out += _table(["dataset", "ours", "baseline", "time ours/baseline", "real-time factor (ours / baseline)",
                    "peak RSS MB (ours / baseline)", "keyframes"], rows_s)
-    out += ["", *headline(acc)]
+    out += ["", *headline(runs)]
     return out
 
 
-def headline(acc: dict) -> list[str]:
+def headline(runs: list[dict]) -> list[str]:
     """Geometric means of the ours/baseline ratios over the runs where both succeeded."""
-    ra = [r["ratio"]["ate"] for r in acc.get("runs", []) if r["ratio"].get("ate")]
-    rt = [r["ratio"]["time"] for r in acc.get("runs", []) if r["ratio"].get("time")]
+    ra = [r["ratio"]["ate"] for r in runs if r["ratio"].get("ate")]
+    rt = [r["ratio"]["time"] for r in runs if r["ratio"].get("time")]
     if not ra:
         return []
     g = lambda x: float(np.exp(np.mean(np.log(x))))  # noqa: E731
     return [f"Geometric mean over {len(ra)} runs: ATE ours/baseline {g(ra):.2f}, "
             f"time per frame ours/baseline {g(rt):.2f}; ours better on ATE in "
             f"{sum(x < 1 for x in ra)} of {len(ra)}."]
+
+
+def _td_cell(r: dict) -> str:
+    o = r["ours"]
+    if o.get("td_ms") is None:
+        return "n/a"
+    return f"{o['td_ms']:.2f}" + (f" ({o['td_err_ms']:+.2f})" if o.get("td_err_ms") is not None else "")
+
+
+def image_tables(acc: dict) -> list[str]:
+    """Accuracy and speed of the image-mode runs. Ours' ms/frame is the backend
+    (``FrameOutput.seconds``, KLT excluded, as for the baseline, which replays our front
+    end's observations); 'wall' is the time between outputs, front end included."""
+    runs = [r for r in acc.get("runs", []) if is_image(r)]
+    if not runs:
+        return []
+    rows_a, rows_s = [], []
+    for r in runs:
+        o, b = r["ours"], r["baseline"]
+        err = o.get("error") or b.get("error")
+        rows_a.append([r["dataset"] + (f" ⚠ {err}" if err else ""), r["mode"], _f(o.get("path_m"), 1),
+                       _f(o.get("ate_rmse")), _f(b.get("ate_rmse")), _f(_get(r, "ratio", "ate"), 2),
+                       _f(_get(r, "baseline_td_known", "ate_rmse")), _f(_get(r, "ratio", "ate_td_known"), 2),
+                       _pair(o.get("rpe_trans"), b.get("rpe_trans")), _f(r.get("td_true_ms"), 1), _td_cell(r),
+                       f"{o.get('recoveries', 'n/a')} / {b.get('recoveries', 'n/a')}"])
+        wall = o.get("frame_wall_ms") or {}
+        load = o.get("load_1m") or [None, None]
+        rows_s.append([r["dataset"], _ms(o), f"{_f(wall.get('mean'), 1)} / {_f(wall.get('p95'), 1)}", _ms(b),
+                       _f(_get(r, "ratio", "time"), 2), _pair(o.get("rtf"), b.get("rtf"), 2),
+                       _pair(o.get("cpu_main_s"), o.get("cpu_children_s"), 1), _pair(*load, 1),
+                       _pair(o.get("peak_rss_mb"), b.get("peak_rss_mb"), 0), f"{o.get('keyframes', 'n/a')}"])
+    out = ["Rendered `vio.sim` sequences (752x480 unless the name says otherwise). Baseline: "
+           "`benchmarks/baseline_stereo.py` (CombinedImuFactor + GenericStereoFactor3D on rectified "
+           "observations, GenericProjectionFactorCal3_S2 for cam0-only ones; projection factors only in "
+           "`mono`), replaying the observations our KLT front end produced, our keyframes and initial state. "
+           "The baseline has no td factor: 'true td given' reruns it with the true td applied by the sync "
+           "layer (an oracle ours does not get).",
+           "", "### Accuracy, image modes", ""]
+    out += _table(["dataset", "mode", "path [m]", "ATE ours [m]", "ATE baseline [m]", "ours/baseline",
+                   "ATE baseline, true td given [m]", "ours/that", "RPE 1 m trans [m] (ours / baseline)",
+                   "td true [ms]", "td ours [ms] (error)", "recoveries (ours / baseline)"], rows_a)
+    out += ["", "### Speed, image modes (ms per frame: mean / p50 / p95 / max)", "",
+            "Ours: backend only (the KLT front end runs in a worker process); wall: time between "
+            "outputs, front end included. Real-time factor: data duration / loop wall time (ours "
+            "includes the front end; the baseline replays recorded features). CPU seconds do not depend "
+            "on other load on the machine; wall times do.", ""]
+    out += _table(["dataset", "ours backend", "ours wall mean / p95", "baseline", "time ours/baseline",
+                   "real-time factor (ours / baseline)", "ours CPU s (main / front end)",
+                   "load 1 min (before / after ours)", "peak RSS MB (ours / baseline)", "keyframes"], rows_s)
+    return out + ["", *headline(runs)]
 
 
 def td_table(acc: dict) -> list[str]:
@@ -175,7 +233,10 @@ def render(res: dict) -> str:
            "IncrementalFixedLagSmoother (QR), fed our keyframes, initial state and IMU noise.", ""]
     acc = res.get("accuracy")
     if acc:
-        out += ["## Accuracy and speed, mode `features`", ""] + accuracy_tables(acc) + [""] + td_table(acc)
+        if any(not is_image(r) for r in acc.get("runs", [])) or not acc.get("runs"):
+            out += ["## Accuracy and speed, mode `features`", ""] + accuracy_tables(acc) + [""] + td_table(acc)
+        if any(is_image(r) for r in acc.get("runs", [])):
+            out += ([""] if out[-1] else []) + ["## Accuracy and speed, image modes", ""] + image_tables(acc)
         if acc.get("skipped"):
             out += ["", "Skipped: " + "; ".join(f"`{k}` ({v})" for k, v in acc["skipped"].items())]
         out.append("")
@@ -191,13 +252,15 @@ def render(res: dict) -> str:
 def readme_section(res: dict) -> str:
     """The short README summary: one row per dataset plus the headline ratios."""
     acc = res.get("accuracy") or {}
+    feat = [r for r in acc.get("runs", []) if not is_image(r)]
     rows = [[r["dataset"], _f(r["ours"].get("ate_rmse")), _f(r["baseline"].get("ate_rmse")),
              _f(_get(r["ours"], "frame_ms", "mean"), 1), _f(_get(r["baseline"], "frame_ms", "mean"), 1)]
-            for r in acc.get("runs", [])]
+            for r in feat]
     out = [machine_line(res), ""]
     if rows:
         out += _table(["dataset", "ATE ours [m]", "ATE GTSAM baseline [m]", "ours ms/frame",
-                       "baseline ms/frame"], rows) + [""] + headline(acc)
+                       "baseline ms/frame"], rows) + [""] + headline(feat)
+    out += _readme_images(acc)
     if acc.get("td"):
         a = np.array([t["diff_err_ms"] for t in acc["td"]])
         out.append(f"td (true 5 ms): differential error mean {a.mean():+.2f} ms, RMS "
@@ -209,6 +272,23 @@ def readme_section(res: dict) -> str:
                    + (" (our pipeline raised before the end)" if mem.get("crash") else "") + ".")
     out += ["", "Full tables: `benchmarks/results/results.md` (`python benchmarks/run_all.py`)."]
     return "\n".join(out)
+
+
+def _readme_images(acc: dict) -> list[str]:
+    """The README rows of the image modes (rendered sequences, stereo baseline)."""
+    img = [r for r in acc.get("runs", []) if is_image(r)]
+    if not img:
+        return []
+    rows = [[r["dataset"], r["mode"], _f(r["ours"].get("ate_rmse")), _f(r["baseline"].get("ate_rmse")),
+             _f(_get(r, "baseline_td_known", "ate_rmse")), _td_cell(r), _f(_get(r["ours"], "frame_ms", "mean"), 1),
+             _f(_get(r["ours"], "frame_wall_ms", "mean"), 1), _f(_get(r["baseline"], "frame_ms", "mean"), 1),
+             _f(r["ours"].get("rtf"), 2)] for r in img]
+    return ["", "Image modes (rendered sequences; baseline: GenericStereoFactor3D / projection factors "
+                "on our front end's observations):", ""] + _table(
+        ["dataset", "mode", "ATE ours [m]", "ATE GTSAM baseline [m]", "ATE baseline, true td given [m]",
+         "td ours [ms] (error)",
+         "ours backend ms/frame", "ours wall ms/frame", "baseline ms/frame", "real-time factor ours"],
+        rows) + [""] + headline(img)
 
 
 def update_readme(readme: Path, section: str) -> bool:

@@ -1,9 +1,12 @@
 """The benchmark suite: ours and the GTSAM-native baseline side by side, in one command.
 
     python benchmarks/run_all.py [--quick] [--out benchmarks/results] [--only accuracy,micro,...]
+                                 [--modes features,stereo,mono]
 
 Sections: ``accuracy`` (every runnable mode on the dataset registry, ours then the
-baseline on our keyframes), ``micro`` (bench_factor_cost.py, bench_photometric.py),
+baseline on our keyframes: ``baseline_gtsam.py`` on feature tracks,
+``baseline_stereo.py`` on the observations our KLT front end produced in the image
+modes), ``micro`` (bench_factor_cost.py, bench_photometric.py),
 ``scaling`` (time per frame vs features and window length), ``memory`` (the soak
 run). Each run is a subprocess (``--worker``) so its peak RSS is its own; ground
 truth is read only here, in the parent. Writes ``OUT/results.json`` and
@@ -49,41 +52,72 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def pipeline_config(overrides: dict | None = None):
-    """``PipelineConfig`` defaults with dotted-path overrides, e.g.
-    ``{"backend.solver.lag_s": 4.0}``."""
-    from vio.pipeline import PipelineConfig
+def cpu_s() -> tuple[float, float]:
+    """CPU seconds (user + system) used so far by this process and by its reaped
+    children (the image modes' front-end worker): load-independent cost figures."""
+    import resource
+    a, b = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return a.ru_utime + a.ru_stime, b.ru_utime + b.ru_stime
+
+
+def pipeline_config(overrides: dict | None = None, mode: str = "features"):
+    """The mode's defaults (``vio.run.default_config``) with dotted-path overrides,
+    e.g. ``{"backend.solver.lag_s": 4.0}``."""
+    from vio.run import default_config
 
     def replace(obj, path: list[str], value):
         if len(path) == 1:
             return dataclasses.replace(obj, **{path[0]: value})
         return dataclasses.replace(obj, **{path[0]: replace(getattr(obj, path[0]), path[1:], value)})
-    cfg = PipelineConfig()
+    cfg = default_config(mode)
     for key, value in (overrides or {}).items():
         cfg = replace(cfg, key.split("."), value)
     return cfg
 
 
+def _run_system(job: dict, data, cfg, mode: str) -> tuple:
+    """Ours (recording the schedule, and in image modes the front end's frames, to
+    the job's files) or the baseline replaying them; (RunResult, output times or None)."""
+    from baseline_gtsam import Schedule, record_schedule, run_baseline
+    n = job.get("max_frames")
+    if mode == "features":
+        if job["system"] == "ours":
+            res, sched = record_schedule(data, cfg, n)
+            Path(job["schedule"]).write_text(json.dumps(sched.to_json()))
+            return res, None
+        sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
+        return run_baseline(data, sched, cfg, max_frames=n), None
+    from baseline_stereo import load_frames, record_run, run_image_baseline, save_frames, with_known_td
+    if job["system"] == "ours":
+        rec = record_run(data, cfg, mode, n)
+        Path(job["schedule"]).write_text(json.dumps(rec.schedule.to_json()))
+        save_frames(Path(job["frames"]), rec.frames)
+        return rec.result, rec.emitted_s
+    sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
+    if job.get("td_known_s") is not None:       # the baseline told the true td by the sync layer
+        sched = with_known_td(sched, job["td_known_s"])
+        cfg = dataclasses.replace(cfg, td_s=sched.td_s)
+    return run_image_baseline(data, sched, load_frames(Path(job["frames"])), cfg, mode, n), None
+
+
 def worker(job: dict) -> dict:
-    """Run one system on one dataset (in this process); arrays for the parent."""
+    """Run one system on one dataset (in this process); arrays for the parent.
+    ``job["mode"]`` (default ``features``) picks the pipeline mode and its defaults."""
     if job["system"] == "soak":
         from memory_soak import soak_worker
         return soak_worker(job)
-    from baseline_gtsam import Schedule, record_schedule, run_baseline
     from vio.io.euroc import load_euroc
+    mode = job.get("mode", "features")
     data = load_euroc(job["data"])
-    cfg = pipeline_config(job.get("overrides"))
-    rss0 = rss_mb()
-    if job["system"] == "ours":
-        res, sched = record_schedule(data, cfg, job.get("max_frames"))
-        Path(job["schedule"]).write_text(json.dumps(sched.to_json()))
-    else:
-        sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
-        res = run_baseline(data, sched, cfg, max_frames=job.get("max_frames"))
+    cfg = pipeline_config(job.get("overrides"), mode)
+    rss0, cpu0 = rss_mb(), cpu_s()
+    res, emitted = _run_system(job, data, cfg, mode)
+    cpu1 = cpu_s()
     t, p, q = res.arrays()
     last = res.outputs[-1] if res.outputs else None
-    return {"t_ns": t.tolist(), "p": p.tolist(), "q": q.tolist(),
+    return {"t_ns": t.tolist(), "p": p.tolist(), "q": q.tolist(), "mode": mode,
             "frame_ms": [o.seconds * 1e3 for o in res.outputs],
+            "frame_wall_ms": None if not emitted else (np.diff(emitted) * 1e3).tolist(),
             "n_landmarks": [o.n_landmarks for o in res.outputs],
             "wall_s": res.wall_s, "data_s": res.data_s, "frames_in": res.frames_in,
             "keyframes": res.keyframes, "recoveries": res.recoveries,
@@ -92,7 +126,8 @@ def worker(job: dict) -> dict:
             "T_b_c_calib": data.cam0.calib.T_b_c.matrix().tolist(),
             "estimate_td": cfg.backend.calib.estimate_td,
             "estimate_extrinsic": cfg.backend.calib.estimate_extrinsic,
-            "rss_start_mb": rss0, "peak_rss_mb": peak_rss_mb()}
+            "rss_start_mb": rss0, "peak_rss_mb": peak_rss_mb(),
+            "cpu_main_s": cpu1[0] - cpu0[0], "cpu_children_s": cpu1[1] - cpu0[1]}
 
 
 # ------------------------------------------------------------------ parent side
@@ -101,6 +136,7 @@ def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
     with tempfile.TemporaryDirectory(prefix="vio-bench-") as tmp:
         job = {**job, "result": str(Path(tmp) / "result.json")}
         cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(job)]
+        load0 = os.getloadavg()[0]
         try:
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:
@@ -108,7 +144,8 @@ def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
         if proc.returncode != 0 or not Path(job["result"]).exists():
             tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
             return {"error": f"exit {proc.returncode}: " + " | ".join(tail)}
-        return json.loads(Path(job["result"]).read_text())
+        # 1-min load average before and after: the machine may be shared
+        return {**json.loads(Path(job["result"]).read_text()), "load_1m": [load0, os.getloadavg()[0]]}
 
 
 def _stats(x: list[float]) -> dict:
@@ -131,6 +168,9 @@ def metrics(out: dict, gt, td_true_s: float | None) -> dict:
                "wall_s": out["wall_s"], "peak_rss_mb": out["peak_rss_mb"],
                "rss_start_mb": out["rss_start_mb"],
                "landmarks_p50": float(np.median(out["n_landmarks"])) if out["n_landmarks"] else None}
+    if out.get("frame_wall_ms"):      # image modes: time between outputs, front end included
+        m["frame_wall_ms"] = _stats(out["frame_wall_ms"])
+        m.update(cpu_main_s=out["cpu_main_s"], cpu_children_s=out["cpu_children_s"], load_1m=out.get("load_1m"))
     if gt is not None and len(out["t_ns"]) > 3:
         try:
             e = evaluate(np.array(out["t_ns"], np.int64), np.array(out["p"]), np.array(out["q"]), gt)
@@ -162,16 +202,26 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
     gt = read_groundtruth(find_mav0(path) / "state_groundtruth_estimate0")
     with tempfile.TemporaryDirectory(prefix="vio-sched-") as tmp:
         job = {"data": str(path), "schedule": str(Path(tmp) / "schedule.json"),
+               "frames": str(Path(tmp) / "frames.npz"), "mode": spec.mode,
                "max_frames": spec.max_frames, "overrides": overrides or {}}
         ours = metrics(run_job({**job, "system": "ours"}), gt, spec.td_true_s)
         base = (metrics(run_job({**job, "system": "baseline"}), gt, spec.td_true_s)
                 if "error" not in ours else {"error": "no schedule (ours failed)"})
+        # image modes: also the baseline given the true td (it has no td factor), which
+        # separates the unmodelled-td error from the rest of the comparison
+        known = (metrics(run_job({**job, "system": "baseline", "td_known_s": spec.td_true_s}), gt,
+                         spec.td_true_s)
+                 if spec.mode != "features" and spec.td_true_s and "error" not in ours else None)
     row = {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin,
            "td_true_ms": None if spec.td_true_s is None else spec.td_true_s * 1e3,
            "overrides": overrides or {}, "ours": ours, "baseline": base,
            "ratio": {"ate": _ratio(ours, base, "ate_rmse"),
                      "time": _ratio(ours, base, "frame_ms", "mean")}}
+    if known is not None:
+        row["baseline_td_known"] = known
+        row["ratio"]["ate_td_known"] = _ratio(ours, known, "ate_rmse")
     log(f"  {spec.name:32s} ours {_brief(ours)} | baseline {_brief(base)}"
+        + (f" | baseline, true td given: {_brief(known)}" if known is not None else "")
         + (f" | td {ours['td_ms']:+.2f} ms" if "td_ms" in ours else ""))
     return row
 
@@ -199,12 +249,20 @@ def td_summary(rows: list[dict]) -> list[dict]:
     return out
 
 
-def run_accuracy(quick: bool, log=print) -> dict:
-    specs, skipped = ds.registry(quick)
+def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: dict | None = None) -> dict:
+    """Every dataset of ``modes`` (default: all); with ``keep`` (a previous accuracy
+    section) the rows of the other modes are kept, so one mode can be refreshed."""
+    specs, skipped = ds.registry(quick, modes)
     rows = []
     for spec in specs:
         path = ds.prepare(spec)
         rows.append(compare(spec, path, log=log))
+    if modes and keep:
+        rows += [r for r in keep.get("runs", []) if r.get("mode", "features") not in modes]
+        skipped = {**{k: v for k, v in keep.get("skipped", {}).items() if k not in ds.MODES or k not in modes},
+                   **skipped}
+        order = list(ds.MODES)
+        rows.sort(key=lambda r: order.index(r.get("mode", "features")))
     return {"runs": rows, "td": td_summary(rows), "skipped": skipped}
 
 
@@ -274,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="small datasets (a few minutes)")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     ap.add_argument("--only", default=",".join(SECTIONS), help=f"comma list of {SECTIONS}")
+    ap.add_argument("--modes", help=f"comma list of accuracy modes (default all of {tuple(ds.MODES)}); "
+                    "rows of other modes in an existing results.json are kept")
     ap.add_argument("--readme", type=Path, help="README whose results section to refresh")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -297,14 +357,23 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"{prev} was written with quick={results.get('quick')}; use another --out")
     results.update(machine=machine(), quick=args.quick, created=time.strftime("%Y-%m-%d %H:%M:%S"),
                    cache=str(ds.cache_dir()))
-    runners = {"accuracy": run_accuracy, "micro": run_micro, "scaling": scaling.run_scaling,
-               "memory": memory_soak.run_soak}
+    modes = [m.strip() for m in args.modes.split(",")] if args.modes else None
+    if modes and set(modes) - set(ds.MODES):
+        ap.error(f"unknown mode(s) {sorted(set(modes) - set(ds.MODES))}; choose from {tuple(ds.MODES)}")
+    runners = {"accuracy": lambda q, log: run_accuracy(q, log, modes, results.get("accuracy")),
+               "micro": run_micro, "scaling": scaling.run_scaling, "memory": memory_soak.run_soak}
     for name in sections:
         print(f"[{name}]", flush=True)
         s0 = time.perf_counter()
         results[name] = runners[name](args.quick, log=lambda m: print(m, flush=True))
         results[name + "_seconds"] = time.perf_counter() - s0
-        results.setdefault("section_commits", {})[name] = results["machine"]["commit"]
+        commits = results.setdefault("section_commits", {})
+        if name == "accuracy" and modes:           # refreshed modes carry their own commit
+            name = f"accuracy[{','.join(modes)}]"
+        elif name == "accuracy":
+            for k in [k for k in commits if k.startswith("accuracy[")]:
+                del commits[k]
+        commits[name] = results["machine"]["commit"]
         (args.out / "results.json").write_text(json.dumps(results, indent=1))
     results["total_seconds"] = sum(results.get(s + "_seconds", 0.0) for s in SECTIONS)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))

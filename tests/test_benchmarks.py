@@ -1,5 +1,7 @@
-"""Smoke tests of the benchmark suite (benchmarks/): the GTSAM-native baseline runs on
-real data and the report renders. No timing assertions (numbers live in benchmarks/).
+"""Smoke tests of the benchmark suite (benchmarks/): the GTSAM-native baselines run
+(feature tracks on real data; stereo on a tiny rendered sequence through the worker),
+the dataset registry lists the image modes, and the report renders. No timing
+assertions (numbers live in benchmarks/).
 """
 
 from __future__ import annotations
@@ -102,3 +104,129 @@ def test_readme_section_only_between_markers(tmp_path, capsys):
     assert not report.update_readme(plain, "new")
     assert plain.read_text() == "no markers here\n"
     assert "markers" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ image modes
+def test_registry_lists_image_specs():
+    import datasets as ds
+    specs, skipped = ds.registry(quick=False, modes=["stereo", "mono", "direct", "hybrid"])
+    by_mode: dict = {}
+    for s in specs:
+        by_mode.setdefault(s.mode, []).append(s)
+    assert sorted(by_mode) == ["mono", "stereo"] and set(skipped) == {"direct", "hybrid"}
+    for s in specs:
+        c = s.sim_config()
+        assert s.generated and s.td_true_s == c.td_s == 0.010
+        assert c.seconds == 20.0 and c.image_scale == 1.0 and c.seed != 0   # issue #5: unseen seeds
+        assert c.stereo == (s.mode == "stereo")
+    assert sorted(s.sim_config().line_time_s for s in by_mode["stereo"]) == [0.0, 30e-6]
+    assert len({s.key() for s in specs}) == len(specs) == 3
+    quick, _ = ds.registry(quick=True, modes=["stereo", "mono"])
+    assert [s.sim_config().seconds for s in quick] == [8.0] * 3
+    assert {s.key() for s in quick}.isdisjoint({s.key() for s in specs})
+    # a direct/hybrid builder is one line away
+    assert [s.mode for s in ds.image_datasets("direct", True)] == ["direct", "direct"]
+
+
+def test_frames_npz_round_trip(tmp_path):
+    from baseline_stereo import load_frames, save_frames
+    from vio.io.types import FeatureFrame
+    rng = np.random.default_rng(3)
+    right = rng.normal(size=(4, 2))
+    right[1] = np.nan
+    frames = [None,
+              FeatureFrame(5, np.arange(4), rng.normal(size=(4, 2)), rng.normal(size=(4, 2)),
+                           rng.normal(size=4), right, rng.normal(size=(4, 2))),
+              FeatureFrame(7, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)),
+              FeatureFrame(9, np.array([3, 8]), rng.normal(size=(2, 2)), np.zeros((2, 2)), np.full(2, np.nan))]
+    save_frames(tmp_path / "f.npz", frames)
+    back = load_frames(tmp_path / "f.npz")
+    assert back[0] is None and len(back) == 4
+    for a, b in zip(frames[1:], back[1:]):
+        assert a.t_ns == b.t_ns
+        np.testing.assert_array_equal(a.ids, b.ids)
+        for name in ("uv", "velocity", "row", "right_uv", "right_velocity"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None) == (y is None), name
+            if x is not None:
+                np.testing.assert_array_equal(x, y)       # exact, NaN where NaN
+
+
+def test_stereo_rig_matches_generic_stereo_factor():
+    """Points projected into the unrectified simulator cameras give rectified
+    measurements with equal rows, which GenericStereoFactor3D (body_P_sensor = the
+    rectified cam0) explains with zero error at the true pose and point."""
+    import gtsam
+    from baseline_stereo import StereoRig
+    from vio.io.types import FeatureFrame
+    from vio.sim.render import sim_camera
+    cam0, cam1 = sim_camera("cam0"), sim_camera("cam1")
+    rig = StereoRig.from_calib(cam0, cam1)
+    assert abs(rig.K.baseline() - 0.110) < 0.002              # EuRoC: ~11 cm
+    T_w_b = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.1, 0.2), np.array([1.0, 2.0, 0.5]))
+    T_w_c0, T_w_c1 = T_w_b.compose(cam0.T_b_c), T_w_b.compose(cam1.T_b_c)
+    rng = np.random.default_rng(1)
+    pts = [T_w_c0.transformFrom(np.array([*rng.uniform(-1, 1, 2) * z, z])) for z in rng.uniform(1, 8, 20)]
+    norm = lambda T, p: (lambda q: q[:2] / q[2])(T.transformTo(p))  # noqa: E731
+    fr = FeatureFrame(0, np.arange(20), np.array([norm(T_w_c0, p) for p in pts]), np.zeros((20, 2)),
+                      np.zeros(20), np.array([norm(T_w_c1, p) for p in pts]))
+    meas = rig.measure(fr, epipolar_px=1e-6, min_disparity_px=0.5)
+    assert np.isfinite(meas).all()                            # rows agree after rectification
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+    for p, m in zip(pts, meas):
+        f = gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(*m), noise, 1, 2, rig.K, rig.T_b_r)
+        vals = gtsam.Values()
+        vals.insert(1, T_w_b)
+        vals.insert(2, p)
+        assert np.abs(f.unwhitenedError(vals)).max() < 1e-6   # pixels
+    # and a match off the epipolar line is dropped
+    bad = FeatureFrame(0, np.arange(1), fr.uv[:1], fr.velocity[:1], fr.row[:1], fr.right_uv[:1] + [0, 0.02])
+    assert np.isnan(rig.measure(bad, 2.0, 0.5)).all()
+
+
+@pytest.mark.slow
+def test_tiny_stereo_job_round_trips_through_worker(tmp_path):
+    """3 s of rendered stereo at half resolution, ours then the stereo baseline, each
+    in a fresh ``run_all.py --worker`` process: both run on the same keyframes."""
+    import datasets as ds
+    import run_all
+    spec = ds.sim_spec("stereo", "tiny", seed=11, seconds=3.0, image_scale=0.5)
+    path = ds.prepare(spec, cache=tmp_path)
+    assert (path / ".done").exists() and ds.prepare(spec, cache=tmp_path) == path   # cached
+    row = run_all.compare(spec, path, log=lambda m: None)
+    o, b = row["ours"], row["baseline"]
+    assert "error" not in o and "error" not in b, (o.get("error"), b.get("error"))
+    assert row["mode"] == "stereo" and o["keyframes"] == b["keyframes"] > 5
+    assert 0 < o["frames"] <= b["frames"] and o["frame_wall_ms"]["mean"] > 0
+    assert o["ate_rmse"] < 0.05 and b["ate_rmse"] < 0.10, (o["ate_rmse"], b["ate_rmse"])
+    assert abs(o["td_err_ms"]) < 5.0                           # td 10 ms, estimated
+    assert row["ratio"]["ate"] is not None
+    known = row["baseline_td_known"]                           # the baseline told the true td
+    assert "error" not in known and known["keyframes"] == o["keyframes"] and known["ate_rmse"] < 0.10
+
+
+def test_report_puts_image_rows_in_their_own_tables():
+    res = json.loads(json.dumps(TINY))
+    features_only = report.render(res)
+    img = {"dataset": "sim11-stereo-20s/td10ms", "mode": "stereo", "group": "sim11-stereo-20s", "twin": None,
+           "td_true_ms": 10.0, "overrides": {},
+           "ours": {"ate_rmse": 0.011, "path_m": 14.0, "recoveries": 0, "keyframes": 125, "td_ms": 8.6,
+                    "td_err_ms": -1.4, "frame_ms": {"mean": 30.0, "p50": 20.0, "p95": 90.0, "max": 200.0},
+                    "frame_wall_ms": {"mean": 33.0, "p50": 30.0, "p95": 95.0, "max": 210.0}, "rtf": 1.6},
+           "baseline": {"ate_rmse": 0.041, "recoveries": 0, "keyframes": 125,
+                        "frame_ms": {"mean": 20.0, "p50": 2.0, "p95": 80.0, "max": 150.0}, "rtf": 2.5},
+           "baseline_td_known": {"ate_rmse": 0.007},
+           "ratio": {"ate": 0.268, "time": 1.5, "ate_td_known": 1.571}}
+    res["accuracy"]["runs"].append(img)
+    md = report.render(res)
+    # the feature-mode section is unchanged by an image row
+    head = features_only.split("Skipped:")[0]
+    assert md.startswith(head.rstrip()) and "## Accuracy and speed, image modes" in md
+    row = next(line for line in md.splitlines() if line.startswith("| sim11-stereo-20s/td10ms | stereo"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3:8] == ["0.011", "0.041", "0.27", "0.007", "1.57"] and cells[9:11] == ["10.0", "8.60 (-1.40)"]
+    assert "| sim11-stereo-20s/td10ms | 30.0 / 20.0 / 90.0 / 200.0 | 33.0 / 95.0 |" in md
+    section = report.readme_section(res)
+    assert "| SEQ@0+20s/td5ms | 0.050 | 0.100 | 5.0 | 2.5 |" in section           # feature rows as before
+    assert "| sim11-stereo-20s/td10ms | stereo | 0.011 | 0.041 | 0.007 | 8.60 (-1.40) | 30.0 | 33.0 | 20.0 | 1.60 |" \
+        in section
