@@ -31,7 +31,6 @@ import json
 import logging
 import sys
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,14 +40,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vio.backend import graph  # noqa: E402
-from vio.backend.estimator import Estimator  # noqa: E402
 from vio.backend.init import InitialState  # noqa: E402
 from vio.imu import combined_params, integrate  # noqa: E402
 from vio.io.euroc import EurocDataset, load_euroc  # noqa: E402
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib  # noqa: E402
 from vio.pipeline import FrameOutput, PipelineConfig  # noqa: E402
-from vio.run import RunResult, run_dataset  # noqa: E402
+from vio.run import RunResult  # noqa: E402
 from vio.sync import FramePacket, packets  # noqa: E402
+
+from schedule import Schedule, _capture_init, record_schedule  # noqa: E402,F401 (re-exported)
 
 log = logging.getLogger(__name__)
 X, V, B, L = graph.X, graph.V, graph.B, gtsam.symbol_shorthand.L
@@ -66,63 +66,6 @@ class BaselineConfig:
     gate_px: float = 10.0
     depth_prior_sigma_m: float = 20.0
     zupt: bool = True
-
-
-@dataclass(frozen=True)
-class Schedule:
-    """Our pipeline's decisions: initial state, keyframe stamps (IMU clock, ns) with
-    their still flags, and the sync layer's constant td (s)."""
-
-    init: InitialState
-    keyframes: dict[int, bool]
-    td_s: float
-
-    def to_json(self) -> dict:
-        s = self.init
-        return {"td_s": self.td_s, "keyframes": [[t, bool(f)] for t, f in sorted(self.keyframes.items())],
-                "init": {"t_ns": s.t_ns, "T_w_b": s.T_w_b.matrix().tolist(), "v_w": list(map(float, s.v_w)),
-                         "bias": s.bias.vector().tolist(), "method": s.method}}
-
-    @staticmethod
-    def from_json(d: dict) -> "Schedule":
-        i = d["init"]
-        b = np.asarray(i["bias"], float)
-        init = InitialState(int(i["t_ns"]), gtsam.Pose3(np.asarray(i["T_w_b"], float)),
-                            np.asarray(i["v_w"], float), gtsam.imuBias.ConstantBias(b[:3], b[3:]),
-                            i["method"])
-        return Schedule(init, {int(t): bool(f) for t, f in d["keyframes"]}, float(d["td_s"]))
-
-
-@contextmanager
-def _capture_init(states: list[InitialState]):
-    """Record every ``Estimator.initialize`` state (our pipeline's initialization)."""
-    orig = Estimator.initialize
-
-    def spy(self, state, *a, **k):
-        states.append(state)
-        return orig(self, state, *a, **k)
-    Estimator.initialize = spy
-    try:
-        yield
-    finally:
-        Estimator.initialize = orig
-
-
-def record_schedule(data: EurocDataset, cfg: PipelineConfig,
-                    max_frames: int | None = None) -> tuple[RunResult, Schedule]:
-    """Run our pipeline (``vio.run.run_dataset``) and record its decisions."""
-    kfs: dict[int, bool] = {}
-    states: list[InitialState] = []
-
-    def sink(o: FrameOutput) -> None:
-        if o.keyframe:
-            kfs[int(o.t_ns)] = bool(o.still)
-    with _capture_init(states):
-        res = run_dataset(data, cfg, max_frames, sinks=[sink])
-    if not states:
-        raise RuntimeError(f"{data.root}: our pipeline never initialized")
-    kfs.setdefault(states[0].t_ns, True)
-    return res, Schedule(states[0], kfs, cfg.td_s)
 
 
 @dataclass
@@ -369,13 +312,20 @@ class BaselineVIO:
 
 def run_baseline(data: EurocDataset, sched: Schedule, cfg: PipelineConfig,
                  bcfg: BaselineConfig = BaselineConfig(), max_frames: int | None = None) -> RunResult:
-    """Replay ``sched`` over ``data`` with the baseline; the online estimate at every
-    camera frame from the initial keyframe on (IMU prediction between keyframes)."""
+    """Replay ``sched`` over ``data``'s feature tracks with the baseline."""
     vio = BaselineVIO(data.imu_calib, data.cam0.calib, cfg, bcfg)
+    return replay(vio, data, sched, data.features, max_frames)
+
+
+def replay(vio: BaselineVIO, data: EurocDataset, sched: Schedule, frames: list,
+           max_frames: int | None = None) -> RunResult:
+    """Feed ``vio`` the packets of ``data`` with the observations ``frames`` (aligned
+    with ``data.cam0.t_ns``) on our schedule; the online estimate at every camera
+    frame from the initial keyframe on (IMU prediction between keyframes)."""
     res = RunResult()
     stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
     t_start = time.perf_counter()
-    for pkt in packets(data.imu, stamps, sched.td_s, data.features[:len(stamps)]):
+    for pkt in packets(data.imu, stamps, sched.td_s, frames[:len(stamps)]):
         res.frames_in += 1
         t0 = time.perf_counter()
         if vio.smoother is None:
@@ -387,11 +337,11 @@ def run_baseline(data: EurocDataset, sched: Schedule, cfg: PipelineConfig,
             res.outputs.append(_output(vio, pkt, True, True, t0))
             continue
         integrate(vio.pim, pkt.imu)
-        is_kf = pkt.t_ns in sched.keyframes
-        if is_kf:
-            vio.add_keyframe(pkt.t_ns, pkt.features, sched.keyframes[pkt.t_ns])
+        still = sched.keyframes.get(pkt.t_ns)
+        if still is not None:
+            vio.add_keyframe(pkt.t_ns, pkt.features, still)
             res.keyframes += 1
-        res.outputs.append(_output(vio, pkt, is_kf, is_kf and sched.keyframes[pkt.t_ns], t0))
+        res.outputs.append(_output(vio, pkt, still is not None, bool(still), t0))
     res.wall_s = time.perf_counter() - t_start
     res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
     res.recoveries = vio.recoveries

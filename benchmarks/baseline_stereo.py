@@ -42,13 +42,11 @@ import numpy as np
 sys.path[:0] = [str(Path(__file__).resolve().parents[1]), str(Path(__file__).resolve().parent)]
 
 from baseline_gtsam import (L, X, BaselineConfig, BaselineVIO, Schedule, _capture_init,  # noqa: E402
-                            _Landmark, _output)
-from vio.imu import integrate  # noqa: E402
+                            _Landmark, replay)
 from vio.io.euroc import EurocDataset, load_euroc  # noqa: E402
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib  # noqa: E402
 from vio.pipeline import FrameOutput, Pipeline, PipelineConfig  # noqa: E402
 from vio.run import RunResult, default_config, run_dataset  # noqa: E402
-from vio.sync import packets  # noqa: E402
 
 
 # ------------------------------------------------------------------ recording ours
@@ -328,30 +326,7 @@ def run_image_baseline(data: EurocDataset, sched: Schedule, frames: list[Feature
     online estimate at every camera frame from the initial keyframe on."""
     cam1 = data.cam1.calib if mode != "mono" and data.cam1 is not None else None
     vio = ImageBaselineVIO(data.imu_calib, data.cam0.calib, cam1, cfg, bcfg, scfg)
-    res = RunResult()
-    stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
-    t_start = time.perf_counter()
-    for pkt in packets(data.imu, stamps, sched.td_s, frames[:len(stamps)]):
-        res.frames_in += 1
-        t0 = time.perf_counter()
-        if vio.smoother is None:
-            if pkt.t_ns != sched.init.t_ns:
-                continue
-            vio.initialize(sched.init)
-            vio.observe(0, pkt.features)
-            res.keyframes = 1
-            res.outputs.append(_output(vio, pkt, True, True, t0))
-            continue
-        integrate(vio.pim, pkt.imu)
-        still = sched.keyframes.get(pkt.t_ns)
-        if still is not None:
-            vio.add_keyframe(pkt.t_ns, pkt.features, still)
-            res.keyframes += 1
-        res.outputs.append(_output(vio, pkt, still is not None, bool(still), t0))
-    res.wall_s = time.perf_counter() - t_start
-    res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
-    res.recoveries = vio.recoveries
-    return res
+    return replay(vio, data, sched, frames, max_frames)
 
 
 def main(argv: list[str] | None = None) -> int:

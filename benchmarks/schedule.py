@@ -1,0 +1,75 @@
+"""Our pipeline's decisions, recorded for the GTSAM-native baselines to replay:
+the initial state, the keyframes (IMU-clock ns) with their still flags, and the sync
+layer's constant td (``Schedule``, JSON round trip), recorded by ``record_schedule``.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from vio.backend.estimator import Estimator
+from vio.backend.init import InitialState
+from vio.io.euroc import EurocDataset
+from vio.pipeline import FrameOutput, PipelineConfig
+from vio.run import RunResult, run_dataset
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Our pipeline's decisions: initial state, keyframe stamps (IMU clock, ns) with
+    their still flags, and the sync layer's constant td (s)."""
+
+    init: InitialState
+    keyframes: dict[int, bool]
+    td_s: float
+
+    def to_json(self) -> dict:
+        s = self.init
+        return {"td_s": self.td_s, "keyframes": [[t, bool(f)] for t, f in sorted(self.keyframes.items())],
+                "init": {"t_ns": s.t_ns, "T_w_b": s.T_w_b.matrix().tolist(), "v_w": list(map(float, s.v_w)),
+                         "bias": s.bias.vector().tolist(), "method": s.method}}
+
+    @staticmethod
+    def from_json(d: dict) -> "Schedule":
+        i = d["init"]
+        b = np.asarray(i["bias"], float)
+        init = InitialState(int(i["t_ns"]), gtsam.Pose3(np.asarray(i["T_w_b"], float)),
+                            np.asarray(i["v_w"], float), gtsam.imuBias.ConstantBias(b[:3], b[3:]),
+                            i["method"])
+        return Schedule(init, {int(t): bool(f) for t, f in d["keyframes"]}, float(d["td_s"]))
+
+
+@contextmanager
+def _capture_init(states: list[InitialState]):
+    """Record every ``Estimator.initialize`` state (our pipeline's initialization)."""
+    orig = Estimator.initialize
+
+    def spy(self, state, *a, **k):
+        states.append(state)
+        return orig(self, state, *a, **k)
+    Estimator.initialize = spy
+    try:
+        yield
+    finally:
+        Estimator.initialize = orig
+
+
+def record_schedule(data: EurocDataset, cfg: PipelineConfig,
+                    max_frames: int | None = None) -> tuple[RunResult, Schedule]:
+    """Run our pipeline (``vio.run.run_dataset``) and record its decisions."""
+    kfs: dict[int, bool] = {}
+    states: list[InitialState] = []
+
+    def sink(o: FrameOutput) -> None:
+        if o.keyframe:
+            kfs[int(o.t_ns)] = bool(o.still)
+    with _capture_init(states):
+        res = run_dataset(data, cfg, max_frames, sinks=[sink])
+    if not states:
+        raise RuntimeError(f"{data.root}: our pipeline never initialized")
+    kfs.setdefault(states[0].t_ns, True)
+    return res, Schedule(states[0], kfs, cfg.td_s)
