@@ -151,8 +151,9 @@ def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
             for label, seed, extra, stereo in SIM_SEQUENCES if stereo == want_stereo]
 
 
-_DIRECT_REASON = ("another helper is wiring --mode direct|hybrid; enable with "
-                  "Mode(name, partial(image_datasets, name))")
+_DIRECT_REASON = ("--mode direct|hybrid run end to end but at ~0.1x real time with tracking "
+                  "failures on long sequences (issue #6), too slow for the suite's 20-s sequences; "
+                  "enable with Mode(name, partial(image_datasets, name))")
 MODES: dict[str, Mode] = {
     "features": Mode("features", feature_datasets),
     "stereo": Mode("stereo", partial(image_datasets, "stereo")),
