@@ -23,7 +23,8 @@ import gtsam
 import numpy as np
 
 from factors.image_ops import AnalyticImage, BilinearImage, SmoothTexture
-from factors.photometric import (Pinhole, PhotometricParams, make_host_patch, stereo_eval,
+from factors.photometric import (Pinhole, PhotometricParams, StereoTerm, make_host_patch,
+                                 point_factor, point_kinds, point_residual_fn, stereo_eval,
                                  stereo_factor, temporal_eval,
                                  stereo_residual_fn, temporal_factor, temporal_residual_fn)
 from jacobian_case import JacobianCase
@@ -148,7 +149,71 @@ def stereo_case(name: str, *, baseline: float = 0.11, rho_range=(0.1, 1.5), bili
     return JacobianCase(name, build, degenerate)
 
 
+def point_case(name: str, *, n_targets: int = 3, stereo: bool = True, bilinear: bool = False,
+               degenerate: bool = False) -> JacobianCase:
+    """A multi-target point factor (``point_factor``): one host point seen in
+    ``n_targets`` target keyframes, optionally with the static stereo term at the host."""
+
+    def build(rng: np.random.Generator):
+        host_img = analytic_image(rng)
+        T_b_c = random_pose(rng, 1.0, 0.05)
+        T_r_l = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.01),
+                            np.array([-0.11, 0.0, 0.0]) + rng.normal(size=3) * 0.002)
+        for _ in range(200):
+            T_w_bi = random_pose(rng)
+            uv = rng.uniform([80, 60], [W - 80, H - 60])
+            rho = rng.uniform(0.2, 1.2)
+            host = make_host_patch(host_img, uv[None], K)
+            poses = [T_w_bi.compose(gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.03),
+                                                rng.normal(size=3) * 0.05))
+                     for _ in range(n_targets)]
+            imgs = [analytic_image(rng) for _ in range(n_targets)]
+            right = analytic_image(rng)
+            ok = True
+            for T_j, im in zip(poses, imgs):
+                ev = temporal_eval(T_w_bi, T_j, np.array([rho]), np.zeros(2), np.zeros(2), host,
+                                   im, K, T_b_c)
+                ok &= bool(ev.valid.all()) and (not bilinear or _frac_ok(ev.uv))
+            if ok:
+                break
+        else:
+            raise RuntimeError(f"{name}: no valid random state found")
+        if bilinear:   # rendered only now: the target pixels do not depend on the image
+            imgs = [BilinearImage(im.render(), gradient="exact") for im in imgs]
+        term = StereoTerm(right, K, T_r_l, PhotometricParams(huber_k=None, weight=0.7)) if stereo else None
+        fn = point_residual_fn(host, imgs, K, T_b_c, CHECK_PARAMS, term)
+        keys = [X(0), D(0), A(0)] + ([A(99)] if stereo else [])
+        for m in range(n_targets):
+            keys += [X(m + 1), A(m + 1)]
+        kinds = point_kinds(n_targets, stereo)
+        values = gtsam.Values()
+        values.insert(X(0), T_w_bi)
+        values.insert(D(0), np.array([rho]))
+        values.insert(A(0), rng.normal([0, 0], [0.3, 10.0]))
+        if stereo:
+            values.insert(A(99), rng.normal([0, 0], [0.2, 8.0]))
+        for m, T_j in enumerate(poses):
+            values.insert(X(m + 1), T_j)
+            values.insert(A(m + 1), rng.normal([0, 0], [0.3, 10.0]))
+        factor = point_factor(keys, host, imgs, K, T_b_c, CHECK_PARAMS, term)
+
+        def residual(vals: gtsam.Values):
+            args = [vals.atPose3(k) if kd == "pose3" else vals.atVector(k) for k, kd in zip(keys, kinds)]
+            r, J = fn(args)
+            dims = [6 if kd == "pose3" else kd for kd in kinds]
+            ends = np.cumsum([0] + dims)
+            return r, [J[:, a:b] for a, b in zip(ends[:-1], ends[1:])]
+
+        return factor, values, residual, kinds
+
+    return JacobianCase(name, build, degenerate)
+
+
 CASES: list[JacobianCase] = [
+    point_case("photometric_point_stereo_3_targets"),
+    point_case("photometric_point_temporal_only", n_targets=2, stereo=False),
+    point_case("photometric_point_bilinear_exact", n_targets=1, bilinear=True),
+    point_case("photometric_point_stereo_only", n_targets=0, degenerate=True),
     temporal_case("photometric_temporal_random"),
     temporal_case("photometric_temporal_identity_extrinsic", identity_extrinsic=True),
     temporal_case("photometric_temporal_bilinear_exact", bilinear=True),

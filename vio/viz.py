@@ -23,6 +23,9 @@ Entity paths (stable; tests read them back):
   ``packet.image_files[0]``), every ``image_every`` frames; absent for feature-only data.
 - ``world/body/cam0/image/features``: ``Points2D`` of the features in distorted pixel
   coordinates, coloured by track length (red: new, green: ``track_len_full`` frames or more).
+- ``world/body/cam0/image/direct_points``: on keyframes of the direct / hybrid modes, the
+  photometric points seen in the keyframe (``add_direct_source``), coloured by their
+  residual RMSE at the current estimate (green 0 to red ``direct_rmse_full`` intensity units).
 - ``metrics/time_ms``, ``metrics/n_features``, ``metrics/n_landmarks``,
   ``metrics/gyro_bias/{x,y,z}`` (rad/s), ``metrics/accel_bias/{x,y,z}`` (m/s^2),
   ``metrics/td_ms``, ``metrics/keyframe`` (1 at keyframes, drawn as points) and, with
@@ -89,6 +92,7 @@ class RerunConfig:
     feature_radius_px: float = 2.5
     gt_max_gap_s: float = 0.1
     gt_min_spread_m: float = 0.3
+    direct_rmse_full: float = 20.0
     port: int = 9876
 
     def __post_init__(self) -> None:
@@ -146,6 +150,7 @@ class RerunSink:
         self._strip_n = 0
         self._T_b_c: np.ndarray | None = None
         self._image_error = False
+        self._direct = None
         self._log_static()
         self._closed = False
 
@@ -197,6 +202,7 @@ class RerunSink:
                                                    radii=self.cfg.landmark_radius_m,
                                                    colors=BLUE))
         self._log_camera(out)
+        self._log_direct(out)
         bg, ba = out.bias.gyroscope(), out.bias.accelerometer()
         self._rows.append((int(out.index), int(out.t_ns), out.seconds * 1e3, out.n_features,
                            out.n_landmarks, *bg, *ba, out.td_s * 1e3, bool(out.keyframe),
@@ -206,6 +212,21 @@ class RerunSink:
             self._log_strips()
         if len(self._rows) >= self.cfg.metrics_every:
             self._send_metrics()
+
+    def add_direct_source(self, getter) -> None:
+        """Show photometric points: ``getter()`` returns a ``vio.direct.source.PointSnapshot``
+        (``uv`` normalized cam0 coordinates, ``rmse``) or None; called on keyframes."""
+        self._direct = getter
+
+    def _log_direct(self, out: FrameOutput) -> None:
+        snap = self._direct() if self._direct is not None and out.keyframe else None
+        if snap is None or self._camera is None or len(snap.uv) == 0:
+            return
+        t = np.clip(np.nan_to_num(snap.rmse, nan=np.inf) / self.cfg.direct_rmse_full, 0.0, 1.0)
+        colors = np.stack([255 * t, 255 * (1 - t), np.zeros_like(t)], 1).astype(np.uint8)
+        self.rec.log("world/body/cam0/image/direct_points",
+                     rr.Points2D(self._camera.project_normalized(snap.uv), colors=colors,
+                                 radii=self.cfg.feature_radius_px))
 
     def _image(self, pkt: FramePacket | None) -> np.ndarray | None:
         if pkt is None or self._n % self.cfg.image_every:

@@ -126,9 +126,62 @@ class TrackConfig:
 
 
 @dataclass(frozen=True)
+class PointsConfig:
+    """Photometric points in the estimator's graph (``vio.direct.source``).
+
+    Every keyframe gets ``select.n_points`` candidates with epipolar depths (they are
+    also its TrackFrame reference). ``max_active`` caps the points still gaining
+    targets (each point is one Python factor: this bounds the callbacks per keyframe);
+    a point gains a target in each new keyframe until it has ``max_targets``, leaves
+    the image (fewer than ``min_inside`` of its pattern pixels inside) or looks
+    occluded (residual RMSE above ``max_target_rmse`` intensity units at the initial
+    guess); then it stays in the graph until its host is marginalized. New points keep
+    ``min_spacing_px`` from the projections of the active ones. ``sigma_I``, ``grad_c``,
+    ``huber_k``: factor weights (``factors.photometric``); ``stereo_weight`` lambda of
+    E = E_d + lambda E_s. ``affine_sigma`` (a, b) prior std of every keyframe's [a, b]
+    (left image) around 0 and of the right image's relative [a, b] around its initial
+    estimate (gauge and weak regularization). ``min_depth_m``/``max_depth_m`` bound new
+    points' epipolar depth. ``use_track_guess``: TrackFrame's pose replaces the IMU
+    prediction as the keyframe's initial guess when it is ``ok`` and within
+    ``track_gate_m`` / ``track_gate_rad`` of the prediction. After each update the
+    points whose factor was rebuilt are re-checked at the new estimate: a target RMSE
+    above ``max_target_rmse`` or an inverse depth outside the depth range removes the
+    point (outlier). ``relinearize_skip`` / ``relinearize_threshold`` override the
+    backend's ``SolverConfig`` values in the direct and hybrid modes (None: keep them):
+    photometric factors are far more nonlinear than projection factors, and iSAM2 keeps
+    a factor at its first linearization point until a relinearization.
+    """
+
+    max_active: int = 100
+    max_targets: int = 4
+    min_inside: float = 0.75
+    max_target_rmse: float = 20.0
+    min_spacing_px: float = 10.0
+    sigma_I: float = 4.0
+    grad_c: float = 50.0
+    huber_k: float = 0.5
+    stereo_weight: float = 1.0
+    affine_sigma: tuple[float, float] = (1.0, 20.0)
+    min_depth_m: float = 0.2
+    max_depth_m: float = 30.0
+    use_track_guess: bool = False
+    track_gate_m: float = 0.05
+    track_gate_rad: float = 0.05
+    relinearize_skip: int | None = 1
+    relinearize_threshold: float | None = 0.005
+
+    def __post_init__(self) -> None:
+        if self.max_active < 0 or self.max_targets < 1 or not 0 < self.min_inside <= 1:
+            raise ValueError("PointsConfig: need max_active >= 0, max_targets >= 1, 0 < min_inside <= 1")
+        if len(self.affine_sigma) != 2 or min(self.affine_sigma) <= 0:
+            raise ValueError("PointsConfig: affine_sigma needs two positive stds (a, b)")
+
+
+@dataclass(frozen=True)
 class DirectConfig:
     """All direct-method parameters (YAML section ``direct``)."""
 
     select: SelectConfig = field(default_factory=SelectConfig)
     epipolar: EpipolarConfig = field(default_factory=EpipolarConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
+    points: PointsConfig = field(default_factory=PointsConfig)

@@ -1,0 +1,110 @@
+"""Per-keyframe image data of the direct mode: undistorted stereo images, the selected
+candidate points with their epipolar inverse depths, and the right image's affine
+brightness relative to the left.
+
+Frames: ``uv`` are undistorted pinhole pixels of cam0 (pixel-centre convention);
+``idepth`` (1/m) and ``idepth_var`` (1/m^2) are in the cam0 frame of the keyframe;
+``ab_right`` = [a, b] with I_right ~ e^a I_left + b at matching pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from factors.image_ops import BilinearImage
+from factors.photometric import PATTERN, Pinhole
+from vio.direct.config import DirectConfig
+from vio.direct.epipolar import epipolar_search, undistort_pinhole
+from vio.direct.select import select_points
+from vio.direct.trackframe import TrackingReference, make_reference
+from vio.io.types import CameraCalib
+
+
+@dataclass(eq=False)
+class StereoRig:
+    """The fixed stereo geometry: pinhole intrinsics of both cameras, ``T_b_c`` of
+    cam0 (body <- cam0) and ``T_c1_c0`` (cam1 <- cam0), and the distortion to remove."""
+
+    cam0: CameraCalib
+    cam1: CameraCalib
+    K0: Pinhole = field(init=False)
+    K1: Pinhole = field(init=False)
+    T_b_c: gtsam.Pose3 = field(init=False)
+    T_c1_c0: gtsam.Pose3 = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.K0 = Pinhole(*self.cam0.intrinsics)
+        self.K1 = Pinhole(*self.cam1.intrinsics)
+        self.T_b_c = self.cam0.T_b_c
+        self.T_c1_c0 = self.cam1.T_b_c.between(self.cam0.T_b_c)
+
+    def undistort(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Both images as undistorted pinhole float64 images (no-op without distortion)."""
+        return (undistort_pinhole(left, self.cam0.K, self.cam0.distortion, self.cam0.distortion_model),
+                undistort_pinhole(right, self.cam1.K, self.cam1.distortion, self.cam1.distortion_model))
+
+
+@dataclass(eq=False)
+class KeyframeData:
+    """Images and candidate points of one keyframe ``k`` (see module docstring)."""
+
+    k: int
+    t_ns: int
+    K: Pinhole
+    image: np.ndarray
+    left: BilinearImage
+    right: BilinearImage
+    uv: np.ndarray
+    idepth: np.ndarray
+    idepth_var: np.ndarray
+    ab_right: np.ndarray
+    n_selected: int
+    in_graph: bool = False
+    _ref: TrackingReference | None = None
+
+    def reference(self, ab: np.ndarray, cfg: DirectConfig) -> TrackingReference:
+        """TrackFrame reference of this keyframe (built once) with its affine ``ab``."""
+        if self._ref is None:
+            self._ref = make_reference(self.image, self.uv, self.idepth, self.K,
+                                       self.idepth_var, tuple(ab), cfg.track)
+        return TrackingReference(self._ref.K, self._ref.patches, self._ref.idepth,
+                                 self._ref.idepth_var, np.asarray(ab, float))
+
+
+def right_affine(left: BilinearImage, right: BilinearImage, uv: np.ndarray, uv_match: np.ndarray,
+                 offs: np.ndarray) -> np.ndarray:
+    """[a, b] of I_right ~ e^a I_left + b from the pattern intensities of matched points
+    (least squares; [log(std ratio), mean offset] fallback with fewer than 10 matches)."""
+    if len(uv) >= 10:
+        il = left.sample(uv[:, None, 0] + PATTERN[:, 0], uv[:, None, 1] + PATTERN[:, 1])
+        ir = right.sample(uv_match[:, None, 0] + offs[:, 0], uv_match[:, None, 1] + offs[:, 1])
+        ok = il[3] & ir[3]
+        x, y = il[0][ok], ir[0][ok]
+        if x.size >= 40 and np.var(x) > 1e-6:
+            slope = np.cov(x, y, bias=True)[0, 1] / np.var(x)
+            if 0.2 < slope < 5.0:
+                return np.array([np.log(slope), y.mean() - slope * x.mean()])
+    sl = max(right.image.std(), 1e-3) / max(left.image.std(), 1e-3)
+    return np.array([np.log(sl), right.image.mean() - sl * left.image.mean()])
+
+
+def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarray,
+                   rig: StereoRig, cfg: DirectConfig) -> KeyframeData:
+    """Undistort, select ``cfg.select.n_points`` candidates, search their depths along the
+    epipolar lines in the right image (seed eq. 4.1/4.2) and keep those that pass the
+    search checks and ``cfg.points`` depth range; estimate the right image's affine."""
+    left_img, right_img = rig.undistort(left_raw, right_raw)
+    L, R = BilinearImage(left_img), BilinearImage(right_img)
+    sel = select_points(left_img, cfg.select)
+    gain = np.log(max(right_img.std(), 1e-3) / max(left_img.std(), 1e-3))
+    ep = epipolar_search(L, R, sel.uv, rig.K0, rig.K1, rig.T_c1_c0, cfg.epipolar, (gain, 0.0))
+    pc = cfg.points
+    ok = ep.ok & (ep.idepth >= 1.0 / pc.max_depth_m) & (ep.idepth <= 1.0 / pc.min_depth_m)
+    Rm = rig.T_c1_c0.rotation().matrix()
+    offs = PATTERN @ (rig.K1.K @ Rm @ np.linalg.inv(rig.K0.K))[:2, :2].T
+    ab_r = right_affine(L, R, sel.uv[ok], ep.uv_match[ok], offs)
+    return KeyframeData(k, t_ns, rig.K0, left_img, L, R, sel.uv[ok], ep.idepth[ok],
+                        ep.variance[ok], ab_r, len(sel))

@@ -1,0 +1,135 @@
+"""``vio run --mode direct`` and ``--mode hybrid``: wiring of the photometric points
+(``vio.direct.source.PhotometricSource``) into a ``Pipeline``.
+
+``attach(pipe, data, cfg, hybrid)`` registers the source in ``pipe.est.sources`` and
+returns the per-packet stage (``DirectStage``) that ``run_dataset`` applies before
+``pipe.process``: it loads the stereo images onto the packet (``packet.images``) for
+the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
+
+* hybrid: the usual stereo KLT stage (``vio.tracking.ImageStage``) runs on every
+  frame; its features give the backend's projection/stereo landmark factors, and the
+  photometric point factors are added to the same graph.
+* direct: photometric + IMU only. The backend's landmark manager is replaced by
+  ``FeaturelessLandmarks``, which ignores every feature observation, so the graph holds
+  no projection factor at all. KLT still runs *until the estimator is initialized*:
+  the dynamic (visual-inertial) initialization aligns feature tracks, and the
+  keyframe decisions of its buffered window use them. After that KLT is not run; the
+  keyframe / stillness decisions of ``Pipeline`` (mean flow since the last keyframe,
+  number of common features) see ``FeatureFrame``s made of the points of the last two
+  keyframes (epipolar depths) projected into the frame with the IMU-propagated pose
+  since the newest keyframe (ids = keyframe * 1e6 + point index; points that leave the
+  image drop out, so a view change also triggers a keyframe). These frames carry no
+  measurement: nothing in them reaches the graph.
+
+TrackFrame runs once per keyframe inside the source (initial guess of the keyframe
+pose, tracking-failure signal in ``source.tracks``), not per frame. A Rerun sink
+that has ``add_direct_source(getter)`` receives ``source.snapshot`` (points of the
+newest keyframe and their residuals) at ``attach``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+
+from vio.backend.tracks import LandmarkManager
+from vio.direct.keyframe import StereoRig
+from vio.direct.source import PhotometricSource
+from vio.imu import integrate
+from vio.io.euroc import read_image
+from vio.io.types import FeatureFrame
+from vio.sync import FramePacket
+from vio.tracking import ImageStage
+
+X = gtsam.symbol_shorthand.X
+ID_STRIDE = 1_000_000
+
+
+class FeaturelessLandmarks(LandmarkManager):
+    """A landmark manager that ignores feature observations (direct mode): no tracks,
+    hence no projection factors; everything else is the inherited no-op bookkeeping."""
+
+    def observe(self, k: int, fr: FeatureFrame) -> None:
+        return None
+
+
+class DirectStage:
+    """Per-packet stage of the direct / hybrid modes (module docstring)."""
+
+    def __init__(self, pipe, data, cfg, hybrid: bool, source: PhotometricSource) -> None:
+        self.pipe, self.hybrid, self.source = pipe, hybrid, source
+        self.klt = ImageStage(data.cam0.calib, data.cam1.calib, cfg.frontend)
+        self.cam0 = data.cam0.calib
+        self._k = None
+        self._pim = None
+
+    def __call__(self, pkt: FramePacket) -> FramePacket:
+        imgs = pkt.images or tuple(read_image(p) for p in pkt.image_files[:2])
+        if len(imgs) < 2:
+            raise ValueError(f"frame {pkt.stamp_ns}: direct/hybrid mode needs cam0 and cam1 images")
+        pkt = dataclasses.replace(pkt, images=tuple(imgs))
+        est = self.pipe.est
+        if self.hybrid or not est.initialized:
+            return self.klt(pkt)
+        return dataclasses.replace(pkt, features=self._flow_features(pkt))
+
+    def _predict(self, pkt: FramePacket) -> gtsam.Pose3:
+        """T_w_b at this packet: newest keyframe estimate + IMU since (own preintegration,
+        since the pipeline integrates the packet only after this stage)."""
+        est = self.pipe.est
+        T, v, b = est.latest()
+        if self._k != est.k:
+            self._k = est.k
+            self._pim = gtsam.PreintegratedCombinedMeasurements(est.params, b)
+        integrate(self._pim, pkt.imu)
+        return self._pim.predict(gtsam.NavState(T, v), b).pose()
+
+    def _flow_features(self, pkt: FramePacket) -> FeatureFrame:
+        """Points of the last two keyframes projected into this frame (normalized cam0)."""
+        src, est = self.source, self.pipe.est
+        T_c_w = self._predict(pkt).compose(src.rig.T_b_c).inverse()
+        ks = sorted(f for f, kd in src.kfs.items() if kd.in_graph and est.values.exists(X(f)))[-2:]
+        ids, uvs = [], []
+        w, h = self.cam0.resolution
+        for f in ks:
+            kd = src.kfs[f]
+            if len(kd.uv) == 0:
+                continue
+            T = T_c_w.compose(est.values.atPose3(X(f)).compose(src.rig.T_b_c))
+            p = src.rig.K0.unproject(kd.uv) / kd.idepth[:, None]
+            q = p @ T.rotation().matrix().T + T.translation()
+            z = q[:, 2]
+            px = src.rig.K0.project(np.where(z[:, None] > 0.05, q, 1.0))
+            ok = (z > 0.05) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+            ids.append(f * ID_STRIDE + np.flatnonzero(ok))
+            uvs.append(q[ok, :2] / z[ok, None])
+        ids_a = np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)
+        uv = np.concatenate(uvs) if uvs else np.zeros((0, 2))
+        return FeatureFrame(pkt.t_ns, ids_a, uv, np.zeros_like(uv), np.full(len(ids_a), np.nan))
+
+
+def attach(pipe, data, cfg, hybrid: bool) -> DirectStage:
+    """Register the photometric source of ``cfg.direct`` in ``pipe`` (before its first
+    keyframe) and return the packet stage; direct mode (``hybrid=False``) also replaces
+    the landmark manager by ``FeaturelessLandmarks``."""
+    if pipe.est.initialized:
+        raise RuntimeError("attach the direct source before the pipeline is initialized")
+    if data.cam1 is None:
+        raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
+    pc = cfg.direct.points
+    solver = pipe.est.cfg.solver
+    over = {k: val for k, val in (("relinearize_skip", pc.relinearize_skip),
+                                  ("relinearize_threshold", pc.relinearize_threshold)) if val is not None}
+    if over:   # read by the estimator when it creates its smoother (initialization)
+        pipe.est.cfg = dataclasses.replace(pipe.est.cfg, solver=dataclasses.replace(solver, **over))
+    source = PhotometricSource(pipe.est, StereoRig(data.cam0.calib, data.cam1.calib), cfg.direct)
+    pipe.est.sources.append(source)
+    if not hybrid:
+        pipe.est.lm = FeaturelessLandmarks(pipe.est)
+    for sink in pipe.sinks:
+        register = getattr(sink, "add_direct_source", None)
+        if register is not None:
+            register(source.snapshot)
+    return DirectStage(pipe, data, cfg, hybrid, source)
