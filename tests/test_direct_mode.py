@@ -118,10 +118,11 @@ class _SnapshotSink:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mode,bound", [("direct", 0.03), ("hybrid", 0.03)])
+@pytest.mark.parametrize("mode,bound", [("direct", 0.015), ("hybrid", 0.015)])
 def test_direct_and_hybrid_runs(sim_exposure, mode, bound):
     """4 s of half-resolution stereo with smooth exposure changes runs to the end
-    within the ATE bound; the points of the last keyframe fit the images."""
+    within the ATE bound (measured 4.9 mm direct, 4.8 mm hybrid; --mode stereo gets
+    16.5 mm on the same data); the points of the last keyframe fit the images."""
     sink = _SnapshotSink()
     res = run_dataset(sim_exposure, _small(mode == "hybrid"), mode=mode, sinks=[sink])
     assert res.recoveries == 0 and len(res.outputs) > 40

@@ -21,6 +21,11 @@ the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
   image drop out, so a view change also triggers a keyframe). These frames carry no
   measurement: nothing in them reaches the graph.
 
+Both modes override the backend's iSAM2 relinearization (``PointsConfig.relinearize_*``,
+default: every update, threshold 0.005) before the smoother exists: with the backend's
+default (every 10th update) the photometric factors stay at stale linearization points
+and the window diverged within 1 s on the simulated sequence.
+
 TrackFrame runs once per keyframe inside the source (initial guess of the keyframe
 pose, tracking-failure signal in ``source.tracks``), not per frame. A Rerun sink
 that has ``add_direct_source(getter)`` receives ``source.snapshot`` (points of the
