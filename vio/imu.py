@@ -61,5 +61,7 @@ def concat(segments: list[ImuData]) -> ImuData:
     t, w, a = [segs[0].t_ns], [segs[0].gyro], [segs[0].accel]
     for s in segs[1:]:
         k = 1 if s.t_ns[0] == t[-1][-1] else 0
-        t.append(s.t_ns[k:]); w.append(s.gyro[k:]); a.append(s.accel[k:])
+        t.append(s.t_ns[k:])
+        w.append(s.gyro[k:])
+        a.append(s.accel[k:])
     return ImuData(np.concatenate(t), np.concatenate(w), np.concatenate(a))

@@ -48,7 +48,9 @@ from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
-from vio.backend.vi_align import (WindowObs, ViSolution, window_tracks, window_observations, preintegrate_window, chain_increments, AlignProblem, excitation, rotation_only_px, vi_align)
+from vio.backend.vi_align import (AlignProblem, ViSolution, WindowObs, chain_increments, excitation,
+                                  preintegrate_window, rotation_only_px, vi_align, window_observations,
+                                  window_tracks)
 
 log = logging.getLogger(__name__)
 X, V, B, L = (gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B,

@@ -43,7 +43,8 @@ def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     w = cfg.lk_window
-    kw = dict(winSize=(w, w), maxLevel=cfg.lk_levels if levels is None else int(levels), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    kw = dict(winSize=(w, w), maxLevel=cfg.lk_levels if levels is None else int(levels),
+              flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
                         cfg.lk_max_iter, cfg.lk_eps))
     p_a = np.ascontiguousarray(px_a, dtype=np.float32).reshape(-1, 1, 2)
