@@ -21,10 +21,11 @@ import numpy as np
 
 from vio.config import to_dict
 from vio.errors import DataError
-from vio.io.calib import load_camera
+from vio.io.calib import load_camera, read_imu_yaml
 from vio.trajectory import interpolate_poses
 from vio.io.euroc import find_mav0
-from vio.io.types import CameraCalib
+from vio.io.types import CameraCalib, ImuData
+from vio.sim.fuse import FusedTrajectory, fuse_groundtruth
 from vio.sim.tracks_io import read_groundtruth, read_table, write_outputs
 
 
@@ -38,6 +39,10 @@ class TrackGenConfig:
     ``outlier_rate``: fraction of observations displaced by ``outlier_px`` or
     (``swap_fraction`` of them) swapped in pairs within a frame. Image bounds use
     the pinhole intrinsics (the undistorted image), not the wider distorted one.
+    ``imu_consistent``: render from (and write as ground truth) the source ground
+    truth smoothed against the real IMU (:mod:`vio.sim.fuse`, priors ``gt_pos_sigma_m``,
+    ``gt_rot_sigma_rad``) instead of the raw ground truth, whose 0.5-1 ms time shifts
+    and jitter against the gyro a real camera would not see.
     """
 
     start_s: float = 0.0
@@ -65,6 +70,9 @@ class TrackGenConfig:
     max_incidence_deg: float = 75.0
     border_px: float = 1.0
     imu_margin_s: float = 0.1
+    imu_consistent: bool = True
+    gt_pos_sigma_m: float = 0.002
+    gt_rot_sigma_rad: float = 0.005
 
     def __post_init__(self) -> None:
         checks = {
@@ -80,6 +88,7 @@ class TrackGenConfig:
             "n_clutter_boxes >= 0": self.n_clutter_boxes >= 0,
             "0 < min_depth_m < max_range_m": 0 < self.min_depth_m < self.max_range_m,
             "0 < max_incidence_deg <= 90": 0 < self.max_incidence_deg <= 90,
+            "gt sigmas > 0": self.gt_pos_sigma_m > 0 and self.gt_rot_sigma_rad > 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -301,7 +310,9 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     seeds = np.random.SeedSequence(cfg.seed).spawn(4)
     rng_room, rng_track, rng_noise, rng_out = (np.random.default_rng(s) for s in seeds)
     pts, nrm = make_room(gt_p, cfg, rng_room)
-    p_w_b, R_w_b = interpolate_poses(gt.t_ns, gt_p, gt_q, t_ns + td)
+    fused = _fused_truth(src, cfg, imu, gt, gt_p, gt_q, t_ns, td) if cfg.imu_consistent else None
+    p_w_b, R_w_b = (fused.at(t_ns + td) if fused is not None
+                    else interpolate_poses(gt.t_ns, gt_p, gt_q, t_ns + td))
     R_b_c, t_b_c = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
     R_w_c, p_w_c = R_w_b @ R_b_c, p_w_b + R_w_b @ t_b_c
     frame, point, ids, uv_true, px, n_vis = _track(cfg, cam, pts, nrm, R_w_c, p_w_c, rng_track)
@@ -325,5 +336,23 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
                      for f, i, k in zip(frame[kind > 0], ids[kind > 0], kind[kind > 0])],
         "config": to_dict(cfg),
     }
-    write_outputs(src, out, res, gt, gt_tum, imu, truth)
+    gt_rows = None
+    if fused is not None:
+        truth["imu_consistent_gt"] = {"pos_shift_rms_m": fused.shift_pos_rms_m,
+                                      "rot_shift_rms_deg": float(np.degrees(fused.shift_rot_rms_rad))}
+        gt_rows = (fused.t_ns, fused.euroc_values())
+    write_outputs(src, out, res, gt, gt_tum, imu, truth, gt_rows)
     return res
+
+
+def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
+                 t_ns: np.ndarray, td: int) -> FusedTrajectory:
+    """The IMU-consistent trajectory at the frame stamps and exposure times (and half a
+    frame period beyond both ends, inside the IMU margin)."""
+    v = imu.table.values
+    data = ImuData(imu.t_ns, v[:, 0:3], v[:, 3:6])
+    ends = np.concatenate([t_ns, t_ns + td])
+    pad = int(round(0.5e9 / cfg.rate_hz))    # a row either side brackets every exposure
+    nodes = np.unique(np.concatenate([ends, [ends.min() - pad, ends.max() + pad]]))
+    return fuse_groundtruth(nodes, gt.t_ns, gt_p, gt_q, data, read_imu_yaml(src / "imu0" / "sensor.yaml"),
+                            cfg.gt_pos_sigma_m, cfg.gt_rot_sigma_rad)

@@ -68,7 +68,10 @@ def read_groundtruth(mav0: Path) -> tuple[Table, np.ndarray, np.ndarray, bool]:
 
 
 def write_outputs(src: Path, out: Path, res: TrackGenResult, gt: Table, gt_tum: bool, imu: Table,
-                   truth: dict) -> None:
+                  truth: dict, gt_rows: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """The output folder. Ground truth: ``gt_rows`` = (t_ns (K,) int64, (K, 16) EuRoC
+    values p, q_wxyz, v, bg, ba) when given (the IMU-consistent trajectory), else the
+    source rows verbatim."""
     m = out / "mav0"
     for d in ("cam0", "imu0", GT_DIR):
         (m / d).mkdir(parents=True, exist_ok=True)
@@ -83,7 +86,15 @@ def write_outputs(src: Path, out: Path, res: TrackGenResult, gt: Table, gt_tum: 
     margin = int(round(truth["config"]["imu_margin_s"] * 1e9))
     t_lo, t_hi = min(t[0], t[0] + res.td_ns) - margin, max(t[-1], t[-1] + res.td_ns) + margin
     imu.write_slice(m / "imu0/data.csv", t_lo, t_hi)
-    gt.write_slice(m / GT_DIR / ("groundtruth_tum.txt" if gt_tum else "data.csv"), t_lo, t_hi, pad=1)
+    if gt_rows is None:
+        gt.write_slice(m / GT_DIR / ("groundtruth_tum.txt" if gt_tum else "data.csv"), t_lo, t_hi, pad=1)
+    else:
+        head = ("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], "
+                "q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], "
+                "b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], "
+                "b_a_RS_S_z [m s^-2]\n")
+        (m / GT_DIR / "data.csv").write_text(head + "".join(
+            f"{int(t)}," + ",".join(repr(float(x)) for x in r) + "\n" for t, r in zip(*gt_rows)))
     lm = zip(res.landmark_ids.tolist(), res.landmark_p_w.tolist())
     (out / "landmarks.csv").write_text("landmark_id,p_w_x,p_w_y,p_w_z\n" + "".join(
         f"{i},{x!r},{y!r},{z!r}\n" for i, (x, y, z) in lm))  # repr: exact float round trip
