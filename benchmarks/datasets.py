@@ -27,11 +27,14 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Callable
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
@@ -56,7 +59,11 @@ class DatasetSpec:
     tracks (``None`` for real data at ``source``); ``sim``: ``SimConfig`` keywords of a
     rendered image sequence (``source`` is then only a label); ``td_true_s``: known
     camera-IMU offset (``None`` if unknown); ``twin``: name of the td = 0 twin of a
-    generated set; ``max_frames``: cap on processed frames (quick runs)."""
+    generated set; ``max_frames``: cap on processed frames (quick runs);
+    ``overrides``: dotted-path ``PipelineConfig`` overrides of the run (e.g. online
+    extrinsic calibration); ``calib_error``: (deg, mm) error put into cam0's T_BS of
+    a copy of the data, whose true T_b_c goes to ``calib_truth.json`` (calibration runs
+    score the estimate against it)."""
 
     name: str
     mode: str
@@ -67,6 +74,12 @@ class DatasetSpec:
     max_frames: int | None = None
     group: str = ""
     sim: tuple[tuple[str, object], ...] | None = None
+    overrides: tuple[tuple[str, object], ...] = ()
+    calib_error: tuple[float, float] | None = None
+
+    def pipeline_overrides(self) -> dict:
+        """Dotted-path ``PipelineConfig`` overrides of this run (``run_all.pipeline_config``)."""
+        return dict(self.overrides)
 
     @property
     def generated(self) -> bool:
@@ -87,7 +100,8 @@ class DatasetSpec:
         for rendered sequences, so a changed simulator default makes a new folder)."""
         from vio.config import to_dict
         cfg = self.sim_config() if self.sim is not None else self.gen_config()
-        blob = json.dumps([str(self.source), to_dict(cfg)], sort_keys=True, default=str)
+        blob = json.dumps([str(self.source), to_dict(cfg)] + ([list(self.calib_error)] if self.calib_error else []),
+                          sort_keys=True, default=str)
         return hashlib.sha1(blob.encode()).hexdigest()[:12]
 
 
@@ -120,7 +134,23 @@ def feature_datasets(quick: bool) -> list[DatasetSpec]:
         seed = 100 + SEQUENCES.index(seq)
         for td in (TD_TRUE_S, 0.0):
             specs.append(generated_spec(seq, td, seed, START_S.get(seq, 0.0), duration))
+    specs.append(calibration_spec(quick))
     return specs
+
+
+CALIB_ERROR = (2.0, 20.0)     # deg, mm: a rough hand-measured extrinsic
+
+
+def calibration_spec(quick: bool) -> DatasetSpec:
+    """Online extrinsic + td calibration: the V1_02 excerpt (td 5 ms) with cam0's T_BS
+    off by ``CALIB_ERROR``, run with ``backend.calib.estimate_extrinsic``."""
+    seq = "V1_02_medium"
+    base = generated_spec(seq, TD_TRUE_S, 100 + SEQUENCES.index(seq), START_S.get(seq, 0.0),
+                          20.0 if quick else 60.0)
+    tag = f"/calib{CALIB_ERROR[0]:g}deg{CALIB_ERROR[1]:g}mm"
+    return dataclasses.replace(base, name=base.name + tag, twin=None, group=base.group + tag,
+                               overrides=(("backend.calib.estimate_extrinsic", True),),
+                               calib_error=CALIB_ERROR)
 
 
 SIM_LABEL = Path("vio.sim")   # ``source`` of rendered specs: a label (no folder), stable cache keys
@@ -198,8 +228,42 @@ def prepare(spec: DatasetSpec, cache: Path | None = None) -> Path:
     else:
         from vio.sim.tracks import generate_tracks
         generate_tracks(spec.source, out, spec.gen_config())
+    if spec.calib_error is not None:
+        perturb_extrinsic(out, *spec.calib_error)
     (out / ".done").write_text(spec.name + "\n")
     return out
+
+
+CALIB_TRUTH = "calib_truth.json"
+_T_BS = re.compile(r"(T_BS:\s*\n\s*cols:\s*4\s*\n\s*rows:\s*4\s*\n\s*data:\s*)\[[^\]]*\]")
+
+
+def perturb_extrinsic(folder: Path, rot_deg: float, trans_mm: float) -> None:
+    """Replace cam0's T_BS in ``folder`` by ``T_b_c * Exp([w, v])`` with |w| = ``rot_deg``
+    and |v| = ``trans_mm`` along fixed axes (the body-frame perturbation of the GTSAM
+    convention), and record the true T_b_c (4x4) in ``folder/calib_truth.json``."""
+    import gtsam
+
+    from vio.io.calib import read_camera_yaml
+    path = folder / "mav0" / "cam0" / "sensor.yaml"
+    true = read_camera_yaml(path).T_b_c
+    w = np.radians(rot_deg) * np.array([0.6, -0.48, 0.64])
+    v = 1e-3 * trans_mm * np.array([-0.48, 0.64, 0.6])
+    wrong = true.compose(gtsam.Pose3.Expmap(np.r_[w, v])).matrix()
+    text = path.read_text()
+    data = ", ".join(f"{x:.12g}" for x in wrong.ravel())
+    new, n = _T_BS.subn(lambda m: m.group(1) + f"[{data}]", text)
+    if n != 1:
+        raise ValueError(f"{path}: no 4x4 T_BS block to perturb")
+    path.write_text(new)
+    (folder / CALIB_TRUTH).write_text(json.dumps({"T_b_c": true.matrix().tolist(),
+                                                  "rot_deg": rot_deg, "trans_mm": trans_mm}))
+
+
+def true_extrinsic(folder: Path) -> list | None:
+    """The true cam0 T_b_c (4x4 list) of a perturbed copy, or None (the file's is true)."""
+    f = Path(folder) / CALIB_TRUTH
+    return json.loads(f.read_text())["T_b_c"] if f.exists() else None
 
 
 def with_overrides(spec: DatasetSpec, suffix: str, **gen) -> DatasetSpec:

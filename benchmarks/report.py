@@ -170,6 +170,25 @@ def td_table(acc: dict) -> list[str]:
     return out
 
 
+def calibration_table(acc: dict) -> list[str]:
+    """Runs that estimated the extrinsic online: its error against the truth, from
+    the (perturbed) starting value when the run had one."""
+    rows = []
+    for r in acc.get("runs", []):
+        o = r["ours"]
+        if o.get("extrinsic_rot_err_deg") is None:
+            continue
+        start = r.get("calib_error") or (0.0, 0.0)
+        rows.append([r["dataset"], f"{start[0]:g} deg / {start[1]:g} mm",
+                     _f(o["extrinsic_rot_err_deg"], 3), _f(o["extrinsic_trans_err_mm"], 1), _td_cell(r),
+                     _f(o.get("ate_rmse")), _f(o.get("ate_pct"), 3)])
+    if not rows:
+        return []
+    out = ["### Online calibration (cam0 extrinsic and td estimated together)", ""]
+    return out + _table(["dataset", "starting extrinsic error", "final rotation error [deg]",
+                         "final translation error [mm]", "td [ms] (error)", "ATE [m]", "ATE % of path"], rows)
+
+
 def micro_lines(micro: dict) -> list[str]:
     out = ["### Micro-benchmarks", ""]
     for script, r in micro.items():
@@ -235,6 +254,8 @@ def render(res: dict) -> str:
     if acc:
         if any(not is_image(r) for r in acc.get("runs", [])) or not acc.get("runs"):
             out += ["## Accuracy and speed, mode `features`", ""] + accuracy_tables(acc) + [""] + td_table(acc)
+            cal = calibration_table(acc)
+            out += [""] + cal if cal else []
         if any(is_image(r) for r in acc.get("runs", [])):
             out += ([""] if out[-1] else []) + ["## Accuracy and speed, image modes", ""] + image_tables(acc)
         if acc.get("skipped"):

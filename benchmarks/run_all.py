@@ -123,7 +123,7 @@ def worker(job: dict) -> dict:
             "keyframes": res.keyframes, "recoveries": res.recoveries,
             "td_s": None if last is None else last.td_s,
             "T_b_c": None if last is None else last.T_b_c.matrix().tolist(),
-            "T_b_c_calib": data.cam0.calib.T_b_c.matrix().tolist(),
+            "T_b_c_calib": ds.true_extrinsic(job["data"]) or data.cam0.calib.T_b_c.matrix().tolist(),
             "estimate_td": cfg.backend.calib.estimate_td,
             "estimate_extrinsic": cfg.backend.calib.estimate_extrinsic,
             "rss_start_mb": rss0, "peak_rss_mb": peak_rss_mb(),
@@ -214,7 +214,7 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
                  if spec.mode != "features" and spec.td_true_s and "error" not in ours else None)
     row = {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin,
            "td_true_ms": None if spec.td_true_s is None else spec.td_true_s * 1e3,
-           "overrides": overrides or {}, "ours": ours, "baseline": base,
+           "overrides": overrides or {}, "calib_error": spec.calib_error, "ours": ours, "baseline": base,
            "ratio": {"ate": _ratio(ours, base, "ate_rmse"),
                      "time": _ratio(ours, base, "frame_ms", "mean")}}
     if known is not None:
@@ -256,7 +256,7 @@ def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: d
     rows = []
     for spec in specs:
         path = ds.prepare(spec)
-        rows.append(compare(spec, path, log=log))
+        rows.append(compare(spec, path, spec.pipeline_overrides(), log=log))
     if modes and keep:
         rows += [r for r in keep.get("runs", []) if r.get("mode", "features") not in modes]
         skipped = {**{k: v for k, v in keep.get("skipped", {}).items() if k not in ds.MODES or k not in modes},

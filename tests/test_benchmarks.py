@@ -230,3 +230,31 @@ def test_report_puts_image_rows_in_their_own_tables():
     assert "| SEQ@0+20s/td5ms | 0.050 | 0.100 | 5.0 | 2.5 |" in section           # feature rows as before
     assert "| sim11-stereo-20s/td10ms | stereo | 0.011 | 0.041 | 0.007 | 8.60 (-1.40) | 30.0 | 33.0 | 20.0 | 1.60 |" \
         in section
+
+
+# ------------------------------------------------------------------ calibration runs
+def test_calibration_spec_perturbs_the_extrinsic_and_keeps_the_truth(tmp_path):
+    """The calibration row starts from a T_BS off by CALIB_ERROR (deg, mm) and scores
+    the estimate against the true T_b_c recorded next to the data."""
+    import shutil
+
+    import gtsam
+
+    import datasets as ds
+    from vio.io.calib import read_camera_yaml
+    src = shared("euroc_V1_01_30s_features", "mav0", "cam0", "sensor.yaml")
+    (tmp_path / "mav0" / "cam0").mkdir(parents=True)
+    shutil.copy(src, tmp_path / "mav0" / "cam0" / "sensor.yaml")
+    true = read_camera_yaml(src).T_b_c
+    ds.perturb_extrinsic(tmp_path, 2.0, 20.0)
+    wrong = read_camera_yaml(tmp_path / "mav0" / "cam0" / "sensor.yaml").T_b_c
+    d = true.between(wrong)
+    assert np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))) == pytest.approx(2.0, rel=1e-6)
+    assert np.linalg.norm(d.translation()) == pytest.approx(0.020, rel=1e-3)   # Exp: J(w) v
+    np.testing.assert_allclose(ds.true_extrinsic(tmp_path), true.matrix(), atol=1e-12)
+    assert ds.true_extrinsic(tmp_path / "mav0") is None
+    spec = ds.calibration_spec(quick=False)
+    assert spec.calib_error == ds.CALIB_ERROR and spec.twin is None
+    assert spec.pipeline_overrides() == {"backend.calib.estimate_extrinsic": True}
+    plain = next(s for s in ds.feature_datasets(False) if s.group == spec.group.split("/calib")[0])
+    assert spec.key() != plain.key()     # its own cache folder
