@@ -168,12 +168,12 @@ class Pipeline:
             self._init_buf = []
             return [self._emit(pkt, True, True, t0)]
         buf = self._init_buf
-        if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic_window_s:
+        if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic.window_s:
             return []
-        res = align(init_window(buf, ic.dynamic_step_s), self.cam, self.imu_calib, self.cfg.backend)
+        res = align(init_window(buf, ic.dynamic.step_s), self.cam, self.imu_calib, self.cfg.backend)
         if not res.ok:
             log.info("dynamic initialization not yet possible: %s", res.reason)
-            keep = buf[-1].t_ns - int(ic.dynamic_window_s * 0.7e9)
+            keep = buf[-1].t_ns - int(ic.dynamic.window_s * 0.7e9)
             self._init_buf = [p for p in buf if p.t_ns >= keep]
             return []
         self._init_buf = []

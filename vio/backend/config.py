@@ -21,48 +21,54 @@ class KeyframeConfig:
 
 
 @dataclass(frozen=True)
+class DynamicInitConfig:
+    """Dynamic initialization (visual-inertial alignment, ``vio.backend.dynamic_init``)
+    on ``window_s`` of keyframes every ``step_s``, using the ``max_tracks`` longest
+    tracks. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
+    makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
+    ``gyro_bias_sigma`` rad/s and its reprojection errors a Huber kernel at ``huber_px``.
+    A solution is rejected (the pipeline waits for a later window) with fewer than
+    ``min_landmarks`` tracks, a free-gravity norm off by more than ``max_gravity_error``
+    (relative), fewer than ``min_inlier_ratio`` inlier observations, a median inlier
+    reprojection error above ``max_reproj_px``, a velocity standard deviation above
+    ``max_v0_sigma`` m/s, an acceleration varying by less than ``min_excitation`` m/s^2
+    RMS (no scale) unless the window is still (rotation alone explains the tracks within
+    ``max_still_parallax_px`` and ``|v0| <= max_v0_sigma``), a batch mean factor error
+    above ``max_mean_error``, or a batch solution further than ``max_v0_disagreement``
+    m/s / ``max_gravity_disagreement_deg`` from the alignment."""
+
+    window_s: float = 1.5
+    step_s: float = 0.1
+    max_tracks: int = 80
+    min_landmarks: int = 15
+    max_depth_m: float = 30.0
+    gyro_bias_sigma: float = 0.1
+    huber_px: float = 2.0
+    max_gravity_error: float = 0.03
+    min_inlier_ratio: float = 0.8
+    max_reproj_px: float = 2.5
+    max_v0_sigma: float = 0.1
+    min_excitation: float = 0.1
+    max_still_parallax_px: float = 4.0
+    max_mean_error: float = 20.0
+    max_v0_disagreement: float = 0.15
+    max_gravity_disagreement_deg: float = 1.5
+
+
+@dataclass(frozen=True)
 class InitConfig:
     """Initialization. Static: the first ``static_window_s`` of IMU must be still
     (50-ms mean gyro within ``max_gyro_std`` rad/s and accel within ``max_accel_std``
-    m/s^2 of the window mean,
-    features below ``max_still_flow_px`` px/frame). Otherwise dynamic initialization
-    (visual-inertial alignment, ``vio.backend.dynamic_init``) runs on ``dynamic_window_s``
-    of keyframes every ``dynamic_step_s``, using the ``dynamic_max_tracks`` longest tracks.
-    Its inverse depths are bounded to ``[1/dynamic_max_depth_m, 10]`` 1/m (the bound
-    makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
-    ``dynamic_gyro_bias_sigma`` rad/s and its reprojection errors a Huber kernel at
-    ``dynamic_huber_px``. A solution is rejected (the pipeline waits for a later window)
-    with fewer than ``dynamic_min_landmarks`` tracks, a free-gravity norm off by more than
-    ``dynamic_max_gravity_error`` (relative), fewer than ``dynamic_min_inlier_ratio``
-    inlier observations, a median inlier reprojection error above ``dynamic_max_reproj_px``,
-    a velocity standard deviation above ``dynamic_max_v0_sigma`` m/s, an acceleration
-    varying by less than ``dynamic_min_excitation`` m/s^2 RMS (no scale) unless the
-    window is still (rotation alone explains the tracks within
-    ``dynamic_max_still_parallax_px`` and ``|v0| <= dynamic_max_v0_sigma``), a batch mean factor
-    error above ``dynamic_max_mean_error``, or a batch solution further than
-    ``dynamic_max_v0_disagreement`` m/s / ``dynamic_max_gravity_disagreement_deg`` from
-    the alignment."""
+    m/s^2 of the window mean, features below ``max_still_flow_px`` px/frame). Otherwise
+    dynamic initialization (``dynamic``, see ``DynamicInitConfig``). ``prior_*``: the
+    initial state's priors (position and yaw fix the gauge); ``zupt_sigma`` (m/s):
+    zero-velocity updates while still."""
 
     static_window_s: float = 0.5
     max_gyro_std: float = 0.05
     max_accel_std: float = 0.6
     max_still_flow_px: float = 1.0
-    dynamic_window_s: float = 1.5
-    dynamic_step_s: float = 0.1
-    dynamic_max_tracks: int = 80
-    dynamic_min_landmarks: int = 15
-    dynamic_max_depth_m: float = 30.0
-    dynamic_gyro_bias_sigma: float = 0.1
-    dynamic_huber_px: float = 2.0
-    dynamic_max_gravity_error: float = 0.03
-    dynamic_min_inlier_ratio: float = 0.8
-    dynamic_max_reproj_px: float = 2.5
-    dynamic_max_v0_sigma: float = 0.1
-    dynamic_min_excitation: float = 0.1
-    dynamic_max_still_parallax_px: float = 4.0
-    dynamic_max_mean_error: float = 20.0
-    dynamic_max_v0_disagreement: float = 0.15
-    dynamic_max_gravity_disagreement_deg: float = 1.5
+    dynamic: DynamicInitConfig = field(default_factory=DynamicInitConfig)
     prior_pos_sigma: float = 1e-3
     prior_yaw_sigma: float = 1e-3
     prior_rp_sigma: float = 0.02

@@ -23,7 +23,7 @@ shrunken scene (depths -> 0, ``v0`` -> 0, motion explained by ``g0``): on the si
 soak start (seeds 7 and 9) it returned ``|v0 - v_true|`` ~ 0.7-0.9 m/s at 0.7-1 m/s and
 the batch LM, started there, stopped in a local minimum.
 
-Acceptance checks (``InitConfig.dynamic_*``) make the pipeline wait for a better window
+Acceptance checks (``InitConfig.dynamic``) make the pipeline wait for a better window
 instead of starting wrong: landmark count, ``|g0|`` before it is fixed, inlier ratio and
 median reprojection error, the standard deviation of ``v0``, the IMU excitation (a
 constant velocity or acceleration leaves the scale free: then only a window without
@@ -123,7 +123,7 @@ def _batch_refine(cam: CameraCalib, cfg: BackendConfig, pims: list, vi: ViSoluti
     g.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(R_w_b0, np.zeros(3)), gtsam.noiseModel.Diagonal.Sigmas(
         np.array([0.1, 0.1, 1e-3, 1e-3, 1e-3, 1e-3]))))
     g.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.dynamic_gyro_bias_sigma)])))
+        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.dynamic.gyro_bias_sigma)])))
     E = gtsam.symbol_shorthand.E(0)
     g.add(gtsam.PriorFactorPose3(E, cam.T_b_c, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     vals.insert(E, cam.T_b_c)
@@ -162,21 +162,21 @@ def _vi_checks(prob: AlignProblem, vi: ViSolution, ic: InitConfig, gerr: float
                 reproj_px=float(np.median(err_px)) if err_px.size else NAN,
                 v0_sigma=float(np.sqrt(max(np.linalg.eigvalsh(vi.cov[:3, :3]).max(), 0.0))),
                 excitation=excitation(prob.pims, vi.bg, prob.gravity, prob.obs.t))
-    if not gerr <= ic.dynamic_max_gravity_error:
-        return (f"gravity magnitude off by {100 * gerr:.1f}% (> {100 * ic.dynamic_max_gravity_error:.0f}%):"
+    if not gerr <= ic.dynamic.max_gravity_error:
+        return (f"gravity magnitude off by {100 * gerr:.1f}% (> {100 * ic.dynamic.max_gravity_error:.0f}%):"
                 " inconsistent alignment"), diag
-    if not diag["inlier_ratio"] >= ic.dynamic_min_inlier_ratio:
+    if not diag["inlier_ratio"] >= ic.dynamic.min_inlier_ratio:
         return f"only {100 * diag['inlier_ratio']:.0f}% inlier observations", diag
-    if not diag["reproj_px"] <= ic.dynamic_max_reproj_px:
+    if not diag["reproj_px"] <= ic.dynamic.max_reproj_px:
         return f"median reprojection error {diag['reproj_px']:.2f} px", diag
-    if not diag["v0_sigma"] <= ic.dynamic_max_v0_sigma:
+    if not diag["v0_sigma"] <= ic.dynamic.max_v0_sigma:
         return (f"initial velocity poorly observable (sigma {diag['v0_sigma']:.3f} m/s: too little"
                 " acceleration or parallax)"), diag
-    if diag["excitation"] < ic.dynamic_min_excitation:
+    if diag["excitation"] < ic.dynamic.min_excitation:
         # no scale from the IMU: only a window without translation is safe (v0 ~ 0)
         parallax = rotation_only_px(prob, vi)
-        if not (parallax <= ic.dynamic_max_still_parallax_px
-                and np.linalg.norm(vi.v0) <= ic.dynamic_max_v0_sigma):
+        if not (parallax <= ic.dynamic.max_still_parallax_px
+                and np.linalg.norm(vi.v0) <= ic.dynamic.max_v0_sigma):
             return (f"acceleration too constant for the scale ({diag['excitation']:.3f} m/s^2)"
                     f" while the camera translates (parallax {parallax:.1f} px)"), diag
     return None, diag
@@ -195,8 +195,8 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
           ) -> AlignResult:
     """Estimate the first keyframe's state from a moving window (see module docstring)."""
     ic = cfg.init
-    tracks = window_tracks(win, max_tracks=ic.dynamic_max_tracks)
-    if len(tracks) < ic.dynamic_min_landmarks:
+    tracks = window_tracks(win, max_tracks=ic.dynamic.max_tracks)
+    if len(tracks) < ic.dynamic.min_landmarks:
         return _reject(f"only {len(tracks)} landmarks seen in >= 3 keyframes")
     params = combined_params(imu_calib, cfg.imu)
     gravity, g_norm = np.asarray(params.n_gravity, float), cfg.imu.gravity
@@ -215,9 +215,9 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
         return _reject(f"batch refinement failed: {str(exc).splitlines()[0]}", **diag)
     dv, dg = _agreement(est, vi, g_norm)
     diag.update(v0_disagreement=dv, gravity_disagreement_deg=dg)
-    if not mean_err < ic.dynamic_max_mean_error:
+    if not mean_err < ic.dynamic.max_mean_error:
         return _reject(f"batch refinement left a mean factor error of {mean_err:.1f}", **diag)
-    if not (dv <= ic.dynamic_max_v0_disagreement and dg <= ic.dynamic_max_gravity_disagreement_deg):
+    if not (dv <= ic.dynamic.max_v0_disagreement and dg <= ic.dynamic.max_gravity_disagreement_deg):
         return _reject(f"batch and alignment disagree ({dv:.3f} m/s, {dg:.2f} deg)", **diag)
     state = InitialState(win.t_ns[0], est.atPose3(X(0)), est.atVector(V(0)),
                          est.atConstantBias(B(0)), "dynamic")

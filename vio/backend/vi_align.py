@@ -108,7 +108,7 @@ def chain_increments(pims: list, bg: np.ndarray, gravity: np.ndarray
 class AlignProblem:
     """The reduced alignment problem over ``x = [v0, g0, bg]`` (b0 frame, gyro bias).
 
-    The gyro bias has a prior (``dynamic_gyro_bias_sigma``): in a short window a yaw-rate
+    The gyro bias has a prior (``DynamicInitConfig.gyro_bias_sigma``): in a short window a yaw-rate
     error and a sideways velocity error look alike (only depth differences separate
     them), and the observations it is estimated from must be outlier-free (a few swapped
     tracks pulled it by 0.06 rad/s and ``v0`` by 0.5 m/s in the simulated windows)."""
@@ -117,8 +117,8 @@ class AlignProblem:
                  ic: InitConfig) -> None:
         self.obs, self.pims, self.gravity, self.cam = obs, pims, gravity, cam
         self.fx = cam.intrinsics[0]
-        self.rho_lim = (1.0 / ic.dynamic_max_depth_m, 10.0)
-        self.bg_sigma = ic.dynamic_gyro_bias_sigma
+        self.rho_lim = (1.0 / ic.dynamic.max_depth_m, 10.0)
+        self.bg_sigma = ic.dynamic.gyro_bias_sigma
         self.mask = np.ones(len(obs.lm), bool)
         self._cache: tuple[bytes, tuple] | None = None
         _, _, dv = chain_increments(pims, np.zeros(3), gravity)
@@ -245,7 +245,7 @@ def vi_align(prob: AlignProblem, ic: InitConfig, outlier: float, sigma: float) -
     ``|g0|`` stays free: forcing it to ``g`` here would push the accelerometer bias's
     component along gravity (0.05 m/s^2 moves a keyframe 6 cm in 1.5 s) into ``v0``;
     the batch LM, which estimates that bias, fixes the magnitude instead."""
-    k = ic.dynamic_huber_px / prob.fx
+    k = ic.dynamic.huber_px / prob.fx
     steps = np.r_[np.full(6, 1e-6), np.full(3, 1e-7)]
     best = None
     for x0 in [np.r_[np.zeros(3), prob.g_imu]] + [prob.alternate(d) for d in (1.0, 3.0)]:
