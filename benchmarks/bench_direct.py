@@ -10,8 +10,9 @@ ATE RMSE (m, SE3-aligned online estimate), time per frame over the frames after
 initialization (ms; "frame" = everything between two pipeline outputs: image loading,
 front end / photometric stage, backend), mean and p95, its backend-only part
 (``FrameOutput.seconds``), keyframes, and the real-time factor (sequence duration / wall
-time of the whole run, initialization included; > 1 is faster than real time). Runs are
-sequential in one process (the machine has few cores; do not run two at once).
+time of the whole run, initialization included; > 1 is faster than real time), then the
+load average. Runs are sequential in one process (the machine has few cores; do not
+run two at once).
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['mode']:8s} {r['ate']:8.4f} {r['ms_mean']:9.1f} {r['ms_p95']:9.1f} "
               f"{r['be_mean']:8.1f} {r['keyframes']:5d} {r['frames']:6d} {r['recoveries']:5d} "
               f"{r['rtf']:6.2f} {r['wall']:8.1f}")
+    print("load average (1, 5, 15 min): " + ", ".join(f"{x:.2f}" for x in os.getloadavg()))
     return 0
 
 

@@ -23,10 +23,10 @@ import gtsam
 import numpy as np
 
 from factors.image_ops import AnalyticImage, BilinearImage, SmoothTexture
-from factors.photometric import (Pinhole, PhotometricParams, StereoTerm, make_host_patch,
-                                 point_factor, point_kinds, point_residual_fn, stereo_eval,
-                                 stereo_factor, temporal_eval,
-                                 stereo_residual_fn, temporal_factor, temporal_residual_fn)
+from factors.photometric import (Pinhole, PhotometricParams, make_host_patch, stereo_eval,
+                                 stereo_factor, stereo_residual_fn, temporal_eval,
+                                 temporal_factor, temporal_residual_fn)
+from factors.photometric_point import StereoTerm, point_factor, point_kinds, point_residual_fn
 from jacobian_case import JacobianCase
 
 W, H = 640, 480

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from cases_photometric import K, analytic_image, random_pose
-from factors.photometric import (PhotometricParams, StereoTerm, make_host_patch, point_eval,
-                                 point_residual_fn, sqrt_weights, stereo_eval, temporal_eval)
+from factors.photometric import (PhotometricParams, make_host_patch, sqrt_weights, stereo_eval,
+                                 temporal_eval)
+from factors.photometric_point import StereoTerm, point_eval, point_residual_fn
 from vio.config import from_dict
 from vio.direct.config import DirectConfig
 from vio.errors import ConfigError
@@ -118,11 +119,11 @@ class _SnapshotSink:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mode,bound", [("direct", 0.015), ("hybrid", 0.015)])
+@pytest.mark.parametrize("mode,bound", [("direct", 0.010), ("hybrid", 0.010)])
 def test_direct_and_hybrid_runs(sim_exposure, mode, bound):
     """4 s of half-resolution stereo with smooth exposure changes runs to the end
-    within the ATE bound (measured 4.9 mm direct, 4.8 mm hybrid; --mode stereo gets
-    16.5 mm on the same data); the points of the last keyframe fit the images."""
+    within the ATE bound (measured 4.1 mm direct, 5.3 mm hybrid; --mode stereo gets
+    15.7 mm on the same data); the points of the last keyframe fit the images."""
     sink = _SnapshotSink()
     res = run_dataset(sim_exposure, _small(mode == "hybrid"), mode=mode, sinks=[sink])
     assert res.recoveries == 0 and len(res.outputs) > 40
@@ -130,6 +131,9 @@ def test_direct_and_hybrid_runs(sim_exposure, mode, bound):
     assert e.ate_rmse < bound, f"{mode}: ATE {e.ate_rmse:.4f} m"
     if mode == "direct":   # no projection factor in the graph
         assert all(o.n_landmarks == 0 for o in res.outputs)
+    # the platform never stops: the flow of the projected points (persistent ids) must
+    # keep the pipeline from declaring it still (a zero-velocity factor while moving)
+    assert not any(o.still for o in res.outputs[1:])
     snap = sink.getter()
     assert snap is not None and len(snap.uv) > 20 and np.isfinite(snap.uv).all()
     assert np.nanmedian(snap.rmse) < 15.0

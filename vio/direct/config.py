@@ -143,13 +143,17 @@ class PointsConfig:
     estimate (gauge and weak regularization). ``min_depth_m``/``max_depth_m`` bound new
     points' epipolar depth. ``use_track_guess``: TrackFrame's pose replaces the IMU
     prediction as the keyframe's initial guess when it is ``ok`` and within
-    ``track_gate_m`` / ``track_gate_rad`` of the prediction. After each update the
-    points whose factor was rebuilt are re-checked at the new estimate: a target RMSE
-    above ``max_target_rmse`` or an inverse depth outside the depth range removes the
-    point (outlier). ``relinearize_skip`` / ``relinearize_threshold`` override the
-    backend's ``SolverConfig`` values in the direct and hybrid modes (None: keep them):
-    photometric factors are far more nonlinear than projection factors, and iSAM2 keeps
-    a factor at its first linearization point until a relinearization.
+    ``track_gate_m`` / ``track_gate_rad`` of the prediction. After each update every
+    point in the graph is re-checked at the new estimate: a target whose RMSE exceeds
+    ``max_target_rmse`` (or that left the image) is dropped from the point's factor;
+    an inverse depth outside the depth range, or no target left, removes the point
+    (outlier). ``relinearize_skip`` / ``relinearize_threshold`` / ``extra_iterations``
+    / ``lag_s`` override the backend's ``SolverConfig`` values in the direct and hybrid
+    modes (None: keep them): photometric factors are far more nonlinear than projection
+    factors, and iSAM2 keeps a factor at its first linearization point until a
+    relinearization. ``keyframe_parallax_px`` likewise overrides the pipeline's
+    ``KeyframeConfig.min_parallax_px``, in direct mode only (hybrid keeps the feature
+    keyframes).
     """
 
     max_active: int = 100
@@ -169,6 +173,9 @@ class PointsConfig:
     track_gate_rad: float = 0.05
     relinearize_skip: int | None = 1
     relinearize_threshold: float | None = 0.005
+    extra_iterations: int | None = None
+    lag_s: float | None = None
+    keyframe_parallax_px: float | None = 40.0
 
     def __post_init__(self) -> None:
         if self.max_active < 0 or self.max_targets < 1 or not 0 < self.min_inside <= 1:

@@ -24,7 +24,11 @@ the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
 Both modes override the backend's iSAM2 relinearization (``PointsConfig.relinearize_*``,
 default: every update, threshold 0.005) before the smoother exists: with the backend's
 default (every 10th update) the photometric factors stay at stale linearization points
-and the window diverged within 1 s on the simulated sequence.
+and the window diverged within 1 s on the simulated sequence. Direct mode also
+raises the pipeline's keyframe parallax (``PointsConfig.keyframe_parallax_px``, 40 px
+instead of 20): the projected points follow rotation, so at 20 px a turn made almost
+every frame a keyframe (279 keyframes in 20 s, 1.1 s per frame); at 40 px the seed-3
+sequence has 150 keyframes, 0.3 s per frame and the same ATE (2.5 cm); 60 px lost it.
 
 TrackFrame runs once per keyframe inside the source (initial guess of the keyframe
 pose, tracking-failure signal in ``source.tracks``), not per frame. A Rerun sink
@@ -49,7 +53,6 @@ from vio.sync import FramePacket
 from vio.tracking import ImageStage
 
 X = gtsam.symbol_shorthand.X
-ID_STRIDE = 1_000_000
 
 
 class FeaturelessLandmarks(LandmarkManager):
@@ -92,23 +95,28 @@ class DirectStage:
         return self._pim.predict(gtsam.NavState(T, v), b).pose()
 
     def _flow_features(self, pkt: FramePacket) -> FeatureFrame:
-        """Points of the last two keyframes projected into this frame (normalized cam0)."""
+        """The source's points (all hosts in the window) projected into this frame
+        (normalized cam0), with their point ids: the ids persist over keyframes, so the
+        pipeline's flow (stillness, parallax) compares the same points across frames."""
         src, est = self.source, self.pipe.est
         T_c_w = self._predict(pkt).compose(src.rig.T_b_c).inverse()
-        ks = sorted(f for f, kd in src.kfs.items() if kd.in_graph and est.values.exists(X(f)))[-2:]
+        by_host: dict[int, list] = {}
+        for p in src.points.values():
+            if est.values.exists(p.key):
+                by_host.setdefault(p.host, []).append(p)
         ids, uvs = [], []
         w, h = self.cam0.resolution
-        for f in ks:
-            kd = src.kfs[f]
-            if len(kd.uv) == 0:
+        for f, pts in by_host.items():
+            if not est.values.exists(X(f)):
                 continue
             T = T_c_w.compose(est.values.atPose3(X(f)).compose(src.rig.T_b_c))
-            p = src.rig.K0.unproject(kd.uv) / kd.idepth[:, None]
-            q = p @ T.rotation().matrix().T + T.translation()
+            rho = np.array([est.values.atVector(p.key)[0] for p in pts])
+            q = src.rig.K0.unproject(np.array([p.uv for p in pts])) / np.maximum(rho, 1e-6)[:, None]
+            q = q @ T.rotation().matrix().T + T.translation()
             z = q[:, 2]
             px = src.rig.K0.project(np.where(z[:, None] > 0.05, q, 1.0))
             ok = (z > 0.05) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-            ids.append(f * ID_STRIDE + np.flatnonzero(ok))
+            ids.append(np.array([p.pid for p in pts])[ok])
             uvs.append(q[ok, :2] / z[ok, None])
         ids_a = np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)
         uv = np.concatenate(uvs) if uvs else np.zeros((0, 2))
@@ -125,10 +133,13 @@ def attach(pipe, data, cfg, hybrid: bool) -> DirectStage:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
     pc = cfg.direct.points
     solver = pipe.est.cfg.solver
-    over = {k: val for k, val in (("relinearize_skip", pc.relinearize_skip),
-                                  ("relinearize_threshold", pc.relinearize_threshold)) if val is not None}
+    over = {k: getattr(pc, k) for k in ("relinearize_skip", "relinearize_threshold",
+                                        "extra_iterations", "lag_s") if getattr(pc, k) is not None}
     if over:   # read by the estimator when it creates its smoother (initialization)
         pipe.est.cfg = dataclasses.replace(pipe.est.cfg, solver=dataclasses.replace(solver, **over))
+    if pc.keyframe_parallax_px is not None and not hybrid:
+        kc = dataclasses.replace(pipe.cfg.backend.keyframe, min_parallax_px=pc.keyframe_parallax_px)
+        pipe.cfg = dataclasses.replace(pipe.cfg, backend=dataclasses.replace(pipe.cfg.backend, keyframe=kc))
     source = PhotometricSource(pipe.est, StereoRig(data.cam0.calib, data.cam1.calib), cfg.direct)
     pipe.est.sources.append(source)
     if not hybrid:

@@ -7,6 +7,13 @@ Keys (next to the backend's X/V/B/E/D/L): ``A(k)`` = [a, b] of keyframe k's left
 
 Per keyframe k (``prepare_update``):
 
+0. every point in the graph is checked at the current estimate (the result of the
+   previous update): targets whose residual RMSE exceeds ``max_target_rmse`` or that
+   left the image are dropped from its factor (occlusion, a depth discontinuity: the
+   point stays, constrained by its other targets); a point with no target left or an
+   inverse depth out of range is removed (weak prior, marginalized at once). Checking
+   only the points rebuilt in the last update missed targets that went bad later and
+   removed whole points for one bad target;
 1. points whose host leaves the window are forgotten (their keys carry the host's
    timestamp, so the smoother marginalizes them with it);
 2. TrackFrame (seed Algorithm 3) aligns keyframe k to the previous keyframe, starting
@@ -15,7 +22,7 @@ Per keyframe k (``prepare_update``):
    affine the guess of A(k); its RMSE is logged and kept in ``tracks`` (failure signal);
 3. every active point is checked in keyframe k at the initial guess (inside the image,
    residual RMSE below ``max_target_rmse``); accepted ones gain target k and their one
-   factor (``factors.photometric.point_factor``: static stereo at the host plus all
+   factor (``factors.photometric_point.point_factor``: static stereo at the host plus all
    temporal targets) is rebuilt; rejected or full ones become inactive and keep their
    last factor until their host is marginalized;
 4. A(k), S(k) get weak priors, and new points hosted in k (epipolar depths, static
@@ -36,8 +43,9 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth
-from factors.photometric import (HostPatch, PhotometricParams, StereoTerm, make_host_patch,
-                                 point_factor, stereo_eval, temporal_eval)
+from factors.photometric import (HostPatch, PhotometricParams, make_host_patch, stereo_eval,
+                                 temporal_eval)
+from factors.photometric_point import StereoTerm, point_factor
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.trackframe import track_frame
@@ -117,7 +125,6 @@ class PhotometricSource:
         self.n_points_total = 0
         self.n_factors_built = 0
         self._pending: list[tuple[Point, int]] = []
-        self._recent: list[int] = []
         self.n_outliers = 0
         self.last_stats: dict = {}
         a, b = pc.affine_sigma
@@ -149,15 +156,12 @@ class PhotometricSource:
         T_k = v.atPose3(X(k))
         occupied = self._extend_points(k, T_k, ab_k, v)
         self._insert_keyframe(kd, T_k, ab_k, g, v, stamps, occupied)
-        self._recent = []
         for p in self.points.values():    # (re)build the factors of new / extended points
             if p.dirty:
                 removals.extend(p.factor_indices)
                 p.factor_indices = []
                 self._add_factor(p, g)
                 p.dirty = False
-                if p.targets:
-                    self._recent.append(p.pid)
         return removals
 
     def record_factor_indices(self, indices) -> None:
@@ -171,21 +175,35 @@ class PhotometricSource:
         are kept and its keys inserted at the next keyframe."""
         self.points = {}
         self._pending = []
-        self._recent = []
         kd = self.kfs.get(self.est.k)
         self.kfs = {} if kd is None else {kd.k: kd}
         if kd is not None:
             kd.in_graph = False
 
     # ------------------------------------------------------------ internals
+    def _target_rmse(self, pts: list[Point], h: int, j: int, v: gtsam.Values | None = None,
+                     T_j: gtsam.Pose3 | None = None, ab_j: np.ndarray | None = None):
+        """Residual RMSE (N,) (intensity units), inside fraction (N,) and the evaluation
+        of host ``h``'s points ``pts`` in keyframe ``j``, at ``v`` (falling back on the
+        estimate) or, when given, at ``T_j`` / ``ab_j`` for keyframe j."""
+        rho = np.array([self._value(v, p.key)[0] for p in pts])
+        ev = temporal_eval(self._value(v, X(h), True), self._value(v, X(j), True) if T_j is None else T_j,
+                           rho, self._value(v, A(h)), self._value(v, A(j)) if ab_j is None else ab_j,
+                           _stack([p.patch for p in pts]), self.kfs[j].left, self.rig.K0, self.rig.T_b_c)
+        n_in = ev.valid.sum(1)
+        return np.sqrt((ev.r ** 2).sum(1) / np.maximum(n_in, 1)), n_in / ev.valid.shape[1], ev
+
     def _remove_outliers(self, g, stamps, removals: list[int]) -> None:
-        """Re-check the points rebuilt in the previous update at the current estimate
-        (every target's RMSE, depth range); outliers lose their factor and their key is
-        marginalized with a weak prior (like ``LandmarkManager._retire_key``)."""
+        """Check every point in the graph at the current estimate (DSO practice: the
+        residuals after the update). A target whose RMSE exceeds ``max_target_rmse`` or
+        that left the image (occlusion, depth discontinuity, misfit) is dropped: the
+        point's factor is rebuilt without it and the point stops gaining targets. A
+        point with an inverse depth outside the depth range, or with no target left,
+        loses its factor and its key is marginalized with a weak prior (like
+        ``LandmarkManager._retire_key``)."""
         vals, pc = self.est.values, self.cfg.points
-        pts = [self.points[i] for i in self._recent if i in self.points]
-        self._recent = []
-        pts = [p for p in pts if p.factor_indices and vals.exists(p.key) and vals.exists(X(p.host))]
+        pts = [p for p in self.points.values()
+               if p.factor_indices and vals.exists(p.key) and vals.exists(X(p.host))]
         bad = set()
         for p in pts:
             rho = float(vals.atVector(p.key)[0])
@@ -194,32 +212,33 @@ class PhotometricSource:
         groups: dict[tuple[int, int], list[Point]] = {}
         for p in pts:
             for j in p.targets:
-                if p.pid not in bad and vals.exists(X(j)):
+                if p.pid not in bad and vals.exists(X(j)) and j in self.kfs:
                     groups.setdefault((p.host, j), []).append(p)
+        dropped = 0
         for (h, j), grp in groups.items():
-            rho = np.array([vals.atVector(p.key)[0] for p in grp])
-            ev = temporal_eval(vals.atPose3(X(h)), vals.atPose3(X(j)), rho, vals.atVector(A(h)),
-                               vals.atVector(A(j)), _stack([p.patch for p in grp]), self.kfs[j].left,
-                               self.rig.K0, self.rig.T_b_c)
-            n_in = ev.valid.sum(1)
-            rmse = np.sqrt((ev.r ** 2).sum(1) / np.maximum(n_in, 1))
-            out = (rmse > pc.max_target_rmse) | (n_in < 0.5 * ev.valid.shape[1])
-            bad.update(p.pid for p, o in zip(grp, out) if o)
+            rmse, inside, _ = self._target_rmse(grp, h, j)
+            for p, o in zip(grp, (rmse > pc.max_target_rmse) | (inside < 0.5)):
+                if o:
+                    p.targets.remove(j)
+                    p.active, p.dirty = False, True
+                    dropped += 1
+        bad.update(p.pid for p in pts if p.dirty and not p.targets)
         for pid in bad:
             p = self.points.pop(pid)
             removals.extend(p.factor_indices)
+            p.factor_indices = []
             g.add(gtsam.PriorFactorVector(p.key, np.asarray(vals.atVector(p.key), float), _WEAK))
             stamps[p.key] = 0.0
         self.n_outliers += len(bad)
-        self.last_stats["outliers"] = len(bad)
+        self.last_stats.update(outliers=len(bad), dropped=dropped)
 
     def _forget(self, leave: set[int]) -> None:
         self.points = {i: p for i, p in self.points.items() if p.host not in leave}
         for f in leave:
             self.kfs.pop(f, None)
 
-    def _value(self, v: gtsam.Values, key: int, pose: bool = False):
-        src = v if v.exists(key) else self.est.values
+    def _value(self, v: gtsam.Values | None, key: int, pose: bool = False):
+        src = v if v is not None and v.exists(key) else self.est.values
         return src.atPose3(key) if pose else np.asarray(src.atVector(key), float)
 
     def _latest_in_graph(self, k: int) -> KeyframeData | None:
@@ -253,19 +272,15 @@ class PhotometricSource:
 
     def _extend_points(self, k: int, T_k: gtsam.Pose3, ab_k: np.ndarray, v) -> np.ndarray:
         """Add target k to the active points that pass the checks; (M, 2) target pixels."""
-        pc, kd = self.cfg.points, self.kfs[k]
+        pc = self.cfg.points
         by_host: dict[int, list[Point]] = {}
         for p in self.points.values():
             if p.active:
                 by_host.setdefault(p.host, []).append(p)
         hits = []
         for h, pts in by_host.items():
-            rho = np.array([self._value(v, p.key)[0] for p in pts])
-            ev = temporal_eval(self._value(v, X(h), True), T_k, rho, self._value(v, A(h)), ab_k,
-                               _stack([p.patch for p in pts]), kd.left, self.rig.K0, self.rig.T_b_c)
-            n_in = ev.valid.sum(1)
-            rmse = np.sqrt((ev.r ** 2).sum(1) / np.maximum(n_in, 1))
-            ok = (n_in >= pc.min_inside * ev.valid.shape[1]) & (rmse <= pc.max_target_rmse)
+            rmse, inside, ev = self._target_rmse(pts, h, k, v, T_k, ab_k)
+            ok = (inside >= pc.min_inside) & (rmse <= pc.max_target_rmse)
             self.last_stats["rejected"] += int((~ok).sum())
             self.last_stats["extended"] += int(ok.sum())
             for p, good, uv in zip(pts, ok, ev.uv[:, 4]):
