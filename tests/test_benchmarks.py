@@ -113,19 +113,23 @@ def test_registry_lists_image_specs():
     by_mode: dict = {}
     for s in specs:
         by_mode.setdefault(s.mode, []).append(s)
-    assert sorted(by_mode) == ["mono", "stereo"] and set(skipped) == {"direct", "hybrid"}
+    assert sorted(by_mode) == ["direct", "hybrid", "mono", "stereo"] and not skipped
     for s in specs:
         c = s.sim_config()
         assert s.generated and s.td_true_s == c.td_s == 0.010
-        assert c.seconds == 20.0 and c.image_scale == 1.0 and c.seed != 0   # issue #5: unseen seeds
-        assert c.stereo == (s.mode == "stereo")
-    assert sorted(s.sim_config().line_time_s for s in by_mode["stereo"]) == [0.0, 30e-6]
-    assert len({s.key() for s in specs}) == len(specs) == 3
+        assert c.seconds == 20.0 and c.image_scale == 1.0 and c.seed not in (0, 3, 5)   # unseen seeds
+        assert c.stereo == (s.mode != "mono")
+    assert sorted(s.sim_config().line_time_s for s in by_mode["stereo"]) == [0.0, 0.0, 30e-6]
+    # the photometric modes run on the exposure-change sequence, as stereo does
+    for m in ("direct", "hybrid"):
+        (only,) = by_mode[m]
+        c = only.sim_config()
+        assert c.exposure_changes == "smooth" and c.line_time_s == 0.0
+        assert only.group in {s.group for s in by_mode["stereo"]}
+    assert len(specs) == 6 and len({s.key() for s in specs}) == 4    # one rendering per sequence
     quick, _ = ds.registry(quick=True, modes=["stereo", "mono"])
-    assert [s.sim_config().seconds for s in quick] == [8.0] * 3
+    assert [s.sim_config().seconds for s in quick] == [8.0] * 4
     assert {s.key() for s in quick}.isdisjoint({s.key() for s in specs})
-    # a direct/hybrid builder is one line away
-    assert [s.mode for s in ds.image_datasets("direct", True)] == ["direct", "direct"]
 
 
 def test_frames_npz_round_trip(tmp_path):
