@@ -159,3 +159,12 @@ def test_rerun_sink_logs_direct_points(tmp_path):
     px = np.array(rows[0]["Points2D:positions"])
     np.testing.assert_allclose(px, Camera(cam).project_normalized(uv), atol=1e-3)
     assert list(rows[0]["Points2D:colors"]) == [0x00FF00FF, 0xFF0000FF]     # RGBA: green, red
+
+
+def test_direct_mode_holds_td_at_the_sync_value():
+    """No photometric factor involves td, so direct mode does not claim to estimate it;
+    hybrid (with the KLT landmarks' td factors) does."""
+    from vio.run import default_config, load_config
+    assert default_config("direct").backend.calib.estimate_td is False
+    assert default_config("hybrid").backend.calib.estimate_td is True
+    assert load_config(None, td=0.004, mode="direct").td_s == 0.004

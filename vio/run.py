@@ -56,6 +56,9 @@ MODE_DEFAULTS: dict[str, dict] = {
     mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
     for mode in ("mono", "stereo", "hybrid")
 }
+# direct: no factor of the photometric points involves td (it is unobservable there), so
+# it is held at the sync layer's value (``--td``) instead of being reported as estimated
+MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}}}
 
 
 def _merged(base: dict, over: dict) -> dict:
