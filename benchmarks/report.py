@@ -121,7 +121,8 @@ def image_tables(acc: dict) -> list[str]:
     for r in runs:
         o, b = r["ours"], r["baseline"]
         err = o.get("error") or b.get("error")
-        rows_a.append([r["dataset"] + (f" ⚠ {err}" if err else ""), r["mode"], _f(o.get("path_m"), 1),
+        mark = " †" if b.get("skipped") else ""
+        rows_a.append([r["dataset"] + mark + (f" ⚠ {err}" if err else ""), r["mode"], _f(o.get("path_m"), 1),
                        _f(o.get("ate_rmse")), _f(b.get("ate_rmse")), _f(_get(r, "ratio", "ate"), 2),
                        _f(_get(r, "baseline_td_known", "ate_rmse")), _f(_get(r, "ratio", "ate_td_known"), 2),
                        _pair(o.get("rpe_trans"), b.get("rpe_trans")), _f(r.get("td_true_ms"), 1), _td_cell(r),
@@ -142,6 +143,9 @@ def image_tables(acc: dict) -> list[str]:
     out += _table(["dataset", "mode", "path [m]", "ATE ours [m]", "ATE baseline [m]", "ours/baseline",
                    "ATE baseline, true td given [m]", "ours/that", "RPE 1 m trans [m] (ours / baseline)",
                    "td true [ms]", "td ours [ms] (error)", "recoveries (ours / baseline)"], rows_a)
+    notes = sorted({f"† {r['mode']}: no baseline ({r['baseline']['skipped']})." for r in runs
+                    if r["baseline"].get("skipped")})
+    out += ["", *notes] if notes else []
     out += ["", "### Speed, image modes (ms per frame: mean / p50 / p95 / max)", "",
             "Ours: backend only (the KLT front end runs in a worker process); wall: time between "
             "outputs, front end included. Real-time factor: data duration / loop wall time (ours "
