@@ -147,11 +147,11 @@ class PointsConfig:
     point in the graph is re-checked at the new estimate: a target whose RMSE exceeds
     ``max_target_rmse`` (or that left the image) is dropped from the point's factor;
     an inverse depth outside the depth range, or no target left, removes the point
-    (outlier). ``relinearize_skip`` / ``relinearize_threshold`` / ``extra_iterations``
-    / ``lag_s`` override the backend's ``SolverConfig`` values in the direct and hybrid
-    modes (None: keep them): photometric factors are far more nonlinear than projection
-    factors, and iSAM2 keeps a factor at its first linearization point until a
-    relinearization. ``keyframe_parallax_px`` likewise overrides the pipeline's
+    (outlier). ``relinearize_skip`` / ``relinearize_threshold`` override the backend's
+    ``SolverConfig`` values in the direct and hybrid modes (None: keep them):
+    photometric factors are far more nonlinear than projection factors, and iSAM2 keeps
+    a factor at its first linearization point until a relinearization.
+    ``keyframe_parallax_px`` likewise overrides the pipeline's
     ``KeyframeConfig.min_parallax_px``, in direct mode only (hybrid keeps the feature
     keyframes).
     """
@@ -173,8 +173,6 @@ class PointsConfig:
     track_gate_rad: float = 0.05
     relinearize_skip: int | None = 1
     relinearize_threshold: float | None = 0.005
-    extra_iterations: int | None = None
-    lag_s: float | None = None
     keyframe_parallax_px: float | None = 40.0
 
     def __post_init__(self) -> None:

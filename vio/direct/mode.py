@@ -133,8 +133,8 @@ def attach(pipe, data, cfg, hybrid: bool) -> DirectStage:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
     pc = cfg.direct.points
     solver = pipe.est.cfg.solver
-    over = {k: getattr(pc, k) for k in ("relinearize_skip", "relinearize_threshold",
-                                        "extra_iterations", "lag_s") if getattr(pc, k) is not None}
+    over = {k: getattr(pc, k) for k in ("relinearize_skip", "relinearize_threshold")
+            if getattr(pc, k) is not None}
     if over:   # read by the estimator when it creates its smoother (initialization)
         pipe.est.cfg = dataclasses.replace(pipe.est.cfg, solver=dataclasses.replace(solver, **over))
     if pc.keyframe_parallax_px is not None and not hybrid:
