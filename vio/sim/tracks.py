@@ -41,8 +41,8 @@ class TrackGenConfig:
     the pinhole intrinsics (the undistorted image), not the wider distorted one.
     ``imu_consistent``: render from (and write as ground truth) the source ground
     truth smoothed against the real IMU (:mod:`vio.sim.fuse`, priors ``gt_pos_sigma_m``,
-    ``gt_rot_sigma_rad``) instead of the raw ground truth, whose 0.5-1 ms time shifts
-    and jitter against the gyro a real camera would not see.
+    ``gt_rot_sigma_rad``) instead of the raw ground truth, whose time shift (up to
+    about 1 ms) and jitter against the gyro a real camera would not see.
     """
 
     start_s: float = 0.0
