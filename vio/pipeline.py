@@ -35,9 +35,12 @@ class PipelineConfig:
     ``backend``: estimator parameters; ``frontend``: KLT tracking (image modes);
     ``direct``: photometric points (``--mode direct|hybrid``); ``trim_heap_every_s``:
     return freed heap memory to the OS every so many seconds of data (0: never; see
-    ``vio.memory``), which keeps the resident size of long runs flat."""
+    ``vio.memory``), which keeps the resident size of long runs flat.
+    ``imu_lookahead_s``: IMU the sync layer serves past each frame (s): the td term
+    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency."""
 
     td_s: float = 0.0
+    imu_lookahead_s: float = 0.02
     trim_heap_every_s: float = 60.0
     backend: BackendConfig = field(default_factory=BackendConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
@@ -131,7 +134,7 @@ class Pipeline:
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
-        self.est.add_imu(pkt.imu)
+        self.est.add_imu(pkt.imu, pkt.imu_ahead)
         still = self._still()
         if self._is_keyframe(pkt):
             self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
@@ -192,7 +195,7 @@ class Pipeline:
                       str(exc).splitlines()[0][:120])
             self.est.smoother = None
             return False
-        self.est.kf_gyro[0] = pkt.imu.gyro[-1]
+        self.est.rates.add_keyframe(0, pkt.t_ns, pkt.imu.gyro[-1])
         self.est.lm.observe(0, self._features(pkt))
         for src in self.est.sources:
             src.observe(0, pkt)

@@ -23,7 +23,7 @@ from vio.backend import graph
 from vio.backend.config import BackendConfig
 from vio.backend.init import InitialState
 from vio.backend.tracks import LandmarkManager
-from vio.imu import combined_params, integrate
+from vio.imu import KeyframeRates, combined_params, integrate
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 
 log = logging.getLogger(__name__)
@@ -100,7 +100,7 @@ class Estimator:
         self.values = gtsam.Values()
         self.k = -1
         self.kf_t: dict[int, int] = {}
-        self.kf_gyro: dict[int, np.ndarray] = {}
+        self.rates = KeyframeRates()
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
@@ -135,6 +135,7 @@ class Estimator:
         self.smoother = self._new_smoother()
         self.k = k
         self.kf_t = {k: state.t_ns}
+        self.rates.reset_to(k)
         g = graph.state_priors(k, state, self.cfg.init, pose_sigmas)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
         v = gtsam.Values()
@@ -153,9 +154,13 @@ class Estimator:
         return self.smoother is not None
 
     # --------------------------------------------------------------- per frame
-    def add_imu(self, seg: ImuData) -> None:
-        """Preintegrate a packet's IMU segment (since the previous frame)."""
+    def add_imu(self, seg: ImuData, ahead: ImuData | None = None) -> None:
+        """Preintegrate a packet's IMU segment (since the previous frame); ``ahead``:
+        samples past the frame, kept for the td term only (``vio.sync`` lookahead)."""
         integrate(self.pim, seg)
+        self.rates.add_imu(seg)
+        if ahead is not None:
+            self.rates.add_imu(ahead)
 
     def latest(self) -> tuple[gtsam.Pose3, np.ndarray, gtsam.imuBias.ConstantBias]:
         """Estimate of the newest keyframe."""
@@ -171,7 +176,8 @@ class Estimator:
                      gyro: np.ndarray | None = None, frame: Any = None) -> KeyframeResult:
         """Insert a keyframe at ``t_ns`` with the IMU integrated since the last one.
         ``gyro``: the raw gyro reading (rad/s, body) at ``t_ns``, for predicted
-        feature velocities; ``frame``: the pipeline's packet, passed to ``sources``."""
+        feature velocities (see ``vio.imu.KeyframeRates``);
+        ``frame``: the pipeline's packet, passed to ``sources``."""
         k0, k1 = self.k, self.k + 1
         pred = self.predict()
         _, _, b0 = self.latest()
@@ -188,7 +194,7 @@ class Estimator:
         self.k = k1
         self.kf_t[k1] = t_ns
         if gyro is not None:
-            self.kf_gyro[k1] = np.asarray(gyro, float)
+            self.rates.add_keyframe(k1, t_ns, gyro)
         self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
@@ -203,7 +209,7 @@ class Estimator:
             recovered = True
         for k in leaving:
             self.kf_t.pop(k, None)
-            self.kf_gyro.pop(k, None)
+            self.rates.drop(k)
         n_removed = 0 if recovered else self._remove_outliers()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()

@@ -1,0 +1,69 @@
+"""Keyframe rates for the td term: the mean gyro over [t_k, t_k + td], refined as IMU arrives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vio.imu import KeyframeRates, mean_gyro
+from vio.io.types import ImuData
+
+MS = 1_000_000
+
+
+def _imu(t0_ms: float, t1_ms: float, f=lambda t: np.c_[np.sin(40 * t), t, np.cos(7 * t)]) -> ImuData:
+    """200-Hz readings of the rate signal ``f`` (t in s) on [t0, t1] ms."""
+    t = np.arange(int(t0_ms * MS), int(t1_ms * MS) + 1, 5 * MS, dtype=np.int64)
+    w = f(t * 1e-9)
+    return ImuData(t, w, np.zeros_like(w))
+
+
+def test_mean_gyro_is_the_integral_of_the_interpolated_readings():
+    imu = _imu(0, 100)
+    # linear readings: exact mean of the line over an interval that cuts sample gaps
+    lin = _imu(0, 100, lambda t: np.c_[3 * t, -t, 2 + 0 * t])
+    np.testing.assert_allclose(mean_gyro(lin, 12 * MS, 33 * MS), [3 * 0.0225, -0.0225, 2.0], atol=1e-12)
+    # against a dense trapezoid of the interpolant
+    s = np.linspace(12 * MS, 33 * MS, 20001)
+    dense = np.stack([np.interp(s, imu.t_ns, imu.gyro[:, a]) for a in range(3)], 1)
+    trap = (0.5 * (dense[1:] + dense[:-1])).mean(0)   # equal steps: trapezoid mean
+    np.testing.assert_allclose(mean_gyro(imu, 12 * MS, 33 * MS), trap, atol=1e-7)
+    # zero-length interval: the interpolated reading
+    np.testing.assert_allclose(mean_gyro(imu, 12 * MS, 12 * MS),
+                               [np.interp(12 * MS, imu.t_ns, imu.gyro[:, a]) for a in range(3)])
+
+
+@pytest.mark.parametrize("td_ms", [5.0, -7.0, 0.0])
+def test_keyframe_rate_is_the_mean_over_the_offset_interval(td_ms):
+    r = KeyframeRates(margin_s=0.1)
+    full = _imu(0, 200)
+    r.add_imu(_imu(0, 100))
+    w_at = full.gyro[20]                           # reading at the 100-ms keyframe
+    r.add_keyframe(3, 100 * MS, w_at)
+    lo, hi = sorted((100 * MS, int((100 + td_ms) * MS)))
+    if td_ms > 0:                                  # the interval is in the next packet
+        np.testing.assert_array_equal(r.rate(3, td_ms * 1e-3), w_at)
+        r.add_imu(_imu(100, 150))
+    np.testing.assert_allclose(r.rate(3, td_ms * 1e-3), mean_gyro(full, lo, hi), atol=1e-12)
+    # follows the td estimate (exact rotation td * rate at any td), not fixed once
+    np.testing.assert_allclose(r.rate(3, 2 * td_ms * 1e-3),
+                               mean_gyro(full, *sorted((100 * MS, int((100 + 2 * td_ms) * MS)))),
+                               atol=1e-12)
+    r.drop(3)
+    assert 3 not in r
+
+
+def test_keyframe_rate_cut_at_the_history_and_history_trimmed():
+    r = KeyframeRates(margin_s=0.02)
+    full = _imu(0, 300)
+    r.add_imu(_imu(0, 100))
+    r.add_keyframe(0, 100 * MS, full.gyro[20])
+    r.add_keyframe(1, 103 * MS, full.gyro[20])
+    # half covered: cut at the last sample (100 ms) -> [100, 100] for kf 1 is outside
+    np.testing.assert_allclose(r.rate(1, -0.01), mean_gyro(full, 93 * MS, 100 * MS), atol=1e-12)
+    r.add_imu(_imu(100, 300))
+    r.drop(0)                                      # history now from 103 - 20 ms on
+    np.testing.assert_allclose(r.rate(1, -0.01), mean_gyro(full, 93 * MS, 103 * MS), atol=1e-12)
+    # an interval the history no longer holds falls back to the reading
+    r.add_keyframe(2, 50 * MS, np.array([1.0, 2.0, 3.0]))
+    np.testing.assert_array_equal(r.rate(2, 0.005), [1.0, 2.0, 3.0])
