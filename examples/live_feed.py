@@ -16,10 +16,21 @@ from vio.pipeline import Pipeline, PipelineConfig
 from vio.sync import Synchronizer, SyncStatus
 
 
+def _drain(sync: Synchronizer, pipe: Pipeline, n_out: int, out):
+    """Process every packet the sync layer can serve now."""
+    while (res := sync.poll()).status in (SyncStatus.READY, SyncStatus.DROPPED):
+        if res.status is SyncStatus.READY:
+            outs = pipe.process(res.packet)   # [] while initializing
+            n_out += len(outs)
+            out = outs[-1] if outs else out
+    return n_out, out
+
+
 def main(path: str) -> None:
     data = load_euroc(path)
-    sync = Synchronizer(td_s=0.0)
-    pipe = Pipeline(data.imu_calib, data.cam0.calib, PipelineConfig())
+    cfg = PipelineConfig()
+    sync = Synchronizer(cfg.td_s, cfg.imu_lookahead_s)   # frames wait for 20 ms of IMU past them
+    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
     frames = iter(zip(data.cam0.t_ns, data.features))
     nxt = next(frames, None)
     n_out, out = 0, None
@@ -28,11 +39,9 @@ def main(path: str) -> None:
         while nxt is not None and nxt[0] <= t:       # the camera delivers its frame
             sync.add_frame(int(nxt[0]), features=nxt[1])
             nxt = next(frames, None)
-        while (res := sync.poll()).status is SyncStatus.READY:
-            outs = pipe.process(res.packet)   # [] while initializing
-            n_out += len(outs)
-            out = outs[-1] if outs else out
-    sync.close()
+        n_out, out = _drain(sync, pipe, n_out, out)
+    sync.close()                                      # serve what still waits for lookahead
+    n_out, out = _drain(sync, pipe, n_out, out)
     print(f"{n_out} frames estimated; last position {out.T_w_b.translation().round(3)} m")
 
 

@@ -57,6 +57,31 @@ def test_push_api_waiting_then_ready_and_dropped():
     assert sync.poll().status is SyncStatus.EMPTY
 
 
+def test_lookahead_waits_for_imu_past_the_frame_and_serves_it():
+    imu = _imu(40)
+    dt = int(imu.t_ns[1] - imu.t_ns[0])
+    sync = Synchronizer(lookahead_s=2.5 * dt * 1e-9)
+    sync.add_frame(int(imu.t_ns[10]))
+    sync.add_frame(int(imu.t_ns[38]))
+    for k in range(13):                               # up to t10 + 2 dt: not enough
+        sync.add_imu(imu.t_ns[k], imu.gyro[k], imu.accel[k])
+    assert sync.poll().status is SyncStatus.WAITING
+    sync.add_imu(imu.t_ns[13], imu.gyro[13], imu.accel[13])
+    res = sync.poll()
+    assert res.status is SyncStatus.READY
+    ahead = res.packet.imu_ahead
+    assert ahead.t_ns[0] == imu.t_ns[10] and ahead.t_ns[-1] == imu.t_ns[10] + int(2.5 * dt)
+    np.testing.assert_allclose(ahead.gyro[1:3], imu.gyro[11:13])
+    for k in range(14, 40):
+        sync.add_imu(imu.t_ns[k], imu.gyro[k], imu.accel[k])
+    assert sync.poll().status is SyncStatus.WAITING   # t38 + 2.5 dt is past the stream
+    sync.close()                                      # closed: served with what there is
+    res = sync.poll()
+    assert res.status is SyncStatus.READY and res.packet.imu_ahead.t_ns[-1] == imu.t_ns[39]
+    with pytest.raises(ValueError, match="lookahead"):
+        Synchronizer(lookahead_s=-1.0)
+
+
 def test_push_api_rejects_bad_samples():
     sync = Synchronizer()
     sync.add_imu(10, np.zeros(3), np.zeros(3))

@@ -119,9 +119,11 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
     """The packets of a run and the stage applied to each in this process (None when
     there is none, or when the KLT front end runs in a worker process, ``vio.overlap``)."""
     if mode == "features":
-        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)]), None
+        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)],
+                       lookahead_s=cfg.imu_lookahead_s), None
     stereo = mode in STEREO_MODES
-    it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)))
+    it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
+                 lookahead_s=cfg.imu_lookahead_s)
     if mode in ("direct", "hybrid"):
         from vio.direct.mode import attach
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid")

@@ -9,6 +9,11 @@ Time offset: a camera stamp plus ``td`` is the frame time in the IMU clock (VINS
 convention, ``t_imu = t_stamp + td``). A constant ``td`` is applied here; an
 estimated td is refined by the td projection factor on top of it.
 
+Lookahead: with ``lookahead_s > 0`` a frame is served only once the IMU reaches
+``lookahead_s`` past it (or the stream is closed), and its packet also carries those
+samples (``imu_ahead``). They are not preintegrated; the estimator uses them for the
+gyro over [t, t + td] when td > 0 (``vio.imu.KeyframeRates``). Cost: that much latency.
+
 Push API (live feeds): ``add_imu`` / ``add_frame`` in any interleaving, then
 ``poll()`` returns the next packet, ``WAITING`` (IMU not yet available past the
 frame) or ``DROPPED`` (the frame can never be served: it precedes the IMU stream,
@@ -42,7 +47,8 @@ class FramePacket:
 
     ``t_ns``: frame time in the IMU clock (stamp + td). ``stamp_ns``: the camera's
     own stamp. ``imu``: samples on ``[t_prev, t_ns]`` (first packet: the single
-    sample at ``t_ns``), endpoints interpolated. ``features``: observations
+    sample at ``t_ns``), endpoints interpolated. ``imu_ahead``: samples on
+    ``[t_ns, t_ns + lookahead]`` (see the module docstring). ``features``: observations
     (feature-track datasets, or a front end's output); ``image_files`` /
     ``images``: per-camera files or arrays (cam0 first).
     """
@@ -54,6 +60,7 @@ class FramePacket:
     features: FeatureFrame | None = None
     image_files: tuple[Path, ...] = ()
     images: tuple[np.ndarray, ...] = ()
+    imu_ahead: ImuData | None = None
 
     @property
     def dt_s(self) -> float:
@@ -77,10 +84,14 @@ class _Frame:
 
 
 class Synchronizer:
-    """Push-style synchronizer. ``td_s``: constant camera-to-IMU time offset (s)."""
+    """Push-style synchronizer. ``td_s``: constant camera-to-IMU time offset (s);
+    ``lookahead_s``: IMU served past each frame (s, see the module docstring)."""
 
-    def __init__(self, td_s: float = 0.0) -> None:
+    def __init__(self, td_s: float = 0.0, lookahead_s: float = 0.0) -> None:
+        if not (np.isfinite(lookahead_s) and lookahead_s >= 0):
+            raise ValueError(f"lookahead_s must be >= 0, got {lookahead_s}")
         self.td_ns = int(round(td_s * 1e9))
+        self.ahead_ns = int(round(lookahead_s * 1e9))
         self._t = np.zeros(0, dtype=np.int64)   # buffered IMU samples (consolidated)
         self._w = np.zeros((0, 3))
         self._a = np.zeros((0, 3))
@@ -141,6 +152,8 @@ class Synchronizer:
                 return SyncResult(SyncStatus.DROPPED, reason=f"frame {fr.stamp_ns}: IMU ended "
                                   f"before t={t}")
             return SyncResult(SyncStatus.WAITING, reason=f"need IMU up to t={t}")
+        if not self._closed and t + self.ahead_ns > self._t[-1]:
+            return SyncResult(SyncStatus.WAITING, reason=f"need IMU up to t={t + self.ahead_ns}")
         if t < self._t[0] or (self._last_t is not None and t <= self._last_t):
             self._frames.popleft()
             return SyncResult(SyncStatus.DROPPED, reason=f"frame {fr.stamp_ns}: t={t} precedes "
@@ -148,9 +161,11 @@ class Synchronizer:
         self._frames.popleft()
         t0 = t if self._last_t is None else self._last_t
         seg = self._segment(t0, t)
+        ahead = self._segment(t, min(t + self.ahead_ns, int(self._t[-1]))) if self.ahead_ns else None
         self._last_t = t
         self._trim(t0)
-        pkt = FramePacket(self._index, t, fr.stamp_ns, seg, fr.features, fr.image_files, fr.images)
+        pkt = FramePacket(self._index, t, fr.stamp_ns, seg, fr.features, fr.image_files, fr.images,
+                          ahead)
         self._index += 1
         return SyncResult(SyncStatus.READY, pkt)
 
@@ -176,12 +191,13 @@ class Synchronizer:
 
 def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
             features: list[FeatureFrame] | None = None,
-            image_files: list[tuple[Path, ...]] | None = None) -> Iterator[FramePacket]:
+            image_files: list[tuple[Path, ...]] | None = None,
+            lookahead_s: float = 0.0) -> Iterator[FramePacket]:
     """Iterate a recorded dataset as packets (dropped frames are skipped).
 
     ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``.
     """
-    sync = Synchronizer(td_s)
+    sync = Synchronizer(td_s, lookahead_s)
     sync.add_imu_block(imu)
     sync.close()
     for k, stamp in enumerate(frame_stamps):
