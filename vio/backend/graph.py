@@ -86,6 +86,7 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
     vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel,
                        cfg.vision.td_velocity_max)
     off = _row_offsets(obs, line_time_s)
+    track.td_shift = {f: (vel[i], off[i]) for i, f in enumerate(frames)}
     lm = make_track(X(frames[0]), obs[0].uv, [X(f) for f in frames[1:]],
                     np.array([o.uv for o in obs[1:]]), anchor_vel=vel[0], vel=vel[1:],
                     anchor_offset=off[0], offset=off[1:])
@@ -98,6 +99,13 @@ def _row_offsets(obs: list, line_time_s: float) -> np.ndarray:
     with ``t_readout = ROWS * line_time`` (seed 004); 0 when the row is unknown."""
     rows = np.array([o.row for o in obs], float)
     return np.where(np.isfinite(rows), rows * line_time_s, 0.0)
+
+
+def _shifted(track: Track, f: int, td: float) -> np.ndarray:
+    """The cam0 observation of keyframe f at the keyframe's time (seed 004 shift)."""
+    s = track.td_shift.get(f)
+    uv = track.obs[f].uv
+    return uv if s is None else uv - (td + s[1]) * s[0]
 
 
 def _td_velocity(vel: np.ndarray, vmax: float) -> np.ndarray:
@@ -143,6 +151,7 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma:
     vmax = cfg.vision.td_velocity_max
     vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
     off = _row_offsets(obs, line_time_s)
+    track.td_shift = {f: (vel[i], off[i]) for i, f in enumerate(frames)}
     st_i = [i for i, o in enumerate(obs) if o.right_uv is not None]
     keys = [X(f) for f in frames[1:]] + [X(frames[i]) for i in st_i]
     uv = np.array([o.uv for o in obs[1:]] + [obs[i].right_uv for i in st_i]).reshape(-1, 2)
@@ -167,17 +176,23 @@ def camera_table(values: gtsam.Values, frames: list[int]) -> tuple[dict, np.ndar
 
 def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values,
                         table: tuple | None = None) -> np.ndarray:
-    """Normalized-plane reprojection error norms of the non-anchor observations;
+    """Normalized-plane reprojection error norms of the non-anchor observations, each
+    observation moved to its keyframe's time as the factor moves it (``track.td_shift``
+    and the td estimate; unshifted where the track has no factor yet): an unshifted
+    check would see ``td * vel`` as error and reject the fast, td-informative points,
+    keeping those whose noise happens to cancel it (a bias of td towards zero).
     ``table``: a :func:`camera_table` covering ``frames`` (built here if None)."""
     lam = float(values.atVector(track.key)[0])
     if lam <= 0:
         return np.full(len(frames) - 1, np.inf)
     pos, R, t = table if table is not None else camera_table(values, frames)
     idx = np.array([pos[f] for f in frames])
-    a = track.obs[frames[0]].uv
+    td = float(values.atVector(TD)[0]) if values.exists(TD) else 0.0
+    uv_all = np.array([_shifted(track, f, td) for f in frames])
+    a = uv_all[0]
     p_w = R[idx[0]] @ (np.array([a[0], a[1], 1.0]) / lam) + t[idx[0]]
     p_c = np.einsum("nji,nj->ni", R[idx[1:]], p_w - t[idx[1:]])
-    uv = np.array([track.obs[f].uv for f in frames[1:]]).reshape(-1, 2)
+    uv = uv_all[1:].reshape(-1, 2)
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - uv, axis=1)
     return np.where(p_c[:, 2] > 1e-6, err, np.inf)

@@ -28,13 +28,16 @@ class Obs:
 class Track:
     """A landmark's observations by keyframe index, its current inverse-depth key
     (anchored in keyframe ``anchor``), and the smoother indices of its factors
-    (one factor per landmark; with stereo it carries the cam1 observations too)."""
+    (one factor per landmark; with stereo it carries the cam1 observations too).
+    ``td_shift[f]``: (vel (2,) 1/s, time offset s) of the cam0 observation in keyframe f
+    as its current factor shifts it, ``uv - (td + offset) * vel`` (seed 004)."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
     key: int | None = None
     anchor: int | None = None
     factor_indices: list[int] = field(default_factory=list)
+    td_shift: dict[int, np.ndarray] = field(default_factory=dict)
     waited: int = 0
     rejected: bool = False
 
