@@ -30,7 +30,7 @@ sys.path[:0] = [str(ROOT)]
 
 from vio.evaluation import evaluate  # noqa: E402
 from vio.io.euroc import load_euroc  # noqa: E402
-from vio.pipeline import PipelineConfig  # noqa: E402
+from vio.run import default_config  # noqa: E402
 from vio.run import run_dataset  # noqa: E402
 
 
@@ -64,7 +64,7 @@ class FrameClock:
 def run_mode(data, mode: str, max_frames: int | None) -> dict:
     clock = FrameClock()
     t0 = time.perf_counter()
-    res = run_dataset(data, PipelineConfig(), max_frames, sinks=[clock], mode=mode)
+    res = run_dataset(data, default_config(mode), max_frames, sinks=[clock], mode=mode)
     wall = time.perf_counter() - t0
     e = evaluate(*res.arrays(), data.groundtruth)
     ms = np.array(clock.dt) * 1e3

@@ -21,7 +21,7 @@ from vio.evaluation import evaluate
 from vio.io.euroc import load_euroc
 from vio.io.types import FeatureFrame
 from vio.pipeline import PipelineConfig
-from vio.run import run_dataset
+from vio.run import default_config, run_dataset
 
 
 def test_point_eval_matches_pairwise_temporal_eval():
@@ -98,7 +98,7 @@ def sim_exposure(tmp_path_factory):
 
 def _small(hybrid: bool) -> PipelineConfig:
     """Half-resolution images: fewer candidates and active points."""
-    cfg = PipelineConfig()
+    cfg = default_config("hybrid" if hybrid else "direct")
     d = cfg.direct
     d = dataclasses.replace(d, select=dataclasses.replace(d.select, n_points=200, block=16),
                             points=dataclasses.replace(d.points, max_active=80 if hybrid else 100))
@@ -164,7 +164,21 @@ def test_rerun_sink_logs_direct_points(tmp_path):
 def test_direct_mode_holds_td_at_the_sync_value():
     """No photometric factor involves td, so direct mode does not claim to estimate it;
     hybrid (with the KLT landmarks' td factors) does."""
-    from vio.run import default_config, load_config
+    from vio.run import load_config
     assert default_config("direct").backend.calib.estimate_td is False
     assert default_config("hybrid").backend.calib.estimate_td is True
     assert load_config(None, td=0.004, mode="direct").td_s == 0.004
+
+
+def test_photometric_mode_defaults_yield_to_yaml(tmp_path):
+    """The backend settings of direct/hybrid mode are mode defaults, so a YAML file
+    overrides them (they used to be forced after loading, silently ignoring it)."""
+    from vio.run import load_config
+    d, h = default_config("direct").backend, default_config("hybrid").backend
+    assert (d.keyframe.min_parallax_px, d.solver.relinearize_skip, d.solver.relinearize_threshold) == (40.0, 1, 0.005)
+    assert h.keyframe.min_parallax_px == default_config("features").backend.keyframe.min_parallax_px
+    assert h.solver.relinearize_skip == 1
+    y = tmp_path / "c.yaml"
+    y.write_text("backend:\n  keyframe: {min_parallax_px: 25.0}\n  solver: {relinearize_skip: 3}\n")
+    c = load_config(y, mode="direct").backend
+    assert (c.keyframe.min_parallax_px, c.solver.relinearize_skip, c.solver.relinearize_threshold) == (25.0, 3, 0.005)

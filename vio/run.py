@@ -56,9 +56,14 @@ MODE_DEFAULTS: dict[str, dict] = {
     mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
     for mode in ("mono", "stereo", "hybrid")
 }
+# photometric points (direct, hybrid): relinearize at every update (see vio.direct.mode)
+_PHOTOMETRIC_SOLVER = {"relinearize_skip": 1, "relinearize_threshold": 0.005}
+MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
 # direct: no factor of the photometric points involves td (it is unobservable there), so
-# it is held at the sync layer's value (``--td``) instead of being reported as estimated
-MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}}}
+# it is held at the sync layer's value (``--td``) instead of being reported as estimated;
+# keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
+MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}, "solver": dict(_PHOTOMETRIC_SOLVER),
+                                       "keyframe": {"min_parallax_px": 40.0}}}
 
 
 def _merged(base: dict, over: dict) -> dict:

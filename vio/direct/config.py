@@ -147,13 +147,9 @@ class PointsConfig:
     point in the graph is re-checked at the new estimate: a target whose RMSE exceeds
     ``max_target_rmse`` (or that left the image) is dropped from the point's factor;
     an inverse depth outside the depth range, or no target left, removes the point
-    (outlier). ``relinearize_skip`` / ``relinearize_threshold`` override the backend's
-    ``SolverConfig`` values in the direct and hybrid modes (None: keep them):
-    photometric factors are far more nonlinear than projection factors, and iSAM2 keeps
-    a factor at its first linearization point until a relinearization.
-    ``keyframe_parallax_px`` likewise overrides the pipeline's
-    ``KeyframeConfig.min_parallax_px``, in direct mode only (hybrid keeps the feature
-    keyframes).
+    (outlier). The backend settings these modes need (iSAM2 relinearization, direct
+    mode's keyframe parallax) are mode defaults in ``vio.run.MODE_DEFAULTS``, so a YAML
+    file overrides them like any other backend value.
     """
 
     max_active: int = 100
@@ -171,9 +167,6 @@ class PointsConfig:
     use_track_guess: bool = False
     track_gate_m: float = 0.05
     track_gate_rad: float = 0.05
-    relinearize_skip: int | None = 1
-    relinearize_threshold: float | None = 0.005
-    keyframe_parallax_px: float | None = 40.0
 
     def __post_init__(self) -> None:
         if self.max_active < 0 or self.max_targets < 1 or not 0 < self.min_inside <= 1:

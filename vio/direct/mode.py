@@ -21,14 +21,14 @@ the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
   image drop out, so a view change also triggers a keyframe). These frames carry no
   measurement: nothing in them reaches the graph.
 
-Both modes override the backend's iSAM2 relinearization (``PointsConfig.relinearize_*``,
-default: every update, threshold 0.005) before the smoother exists: with the backend's
-default (every 10th update) the photometric factors stay at stale linearization points
-and the window diverged within 1 s on the simulated sequence. Direct mode also
-raises the pipeline's keyframe parallax (``PointsConfig.keyframe_parallax_px``, 40 px
-instead of 20): the projected points follow rotation, so at 20 px a turn made almost
-every frame a keyframe (279 keyframes in 20 s, 1.1 s per frame); at 40 px the seed-3
-sequence has 150 keyframes, 0.3 s per frame and the same ATE (2.5 cm); 60 px lost it.
+Both modes' defaults (``vio.run.MODE_DEFAULTS``; a YAML file overrides them) relinearize
+iSAM2 at every update with threshold 0.005: with the backend's default (every 10th
+update) the photometric factors stay at stale linearization points and the window
+diverged within 1 s on the simulated sequence. Direct mode's default keyframe parallax
+is 40 px instead of 20: the projected points follow rotation, so at 20 px a turn made
+almost every frame a keyframe (279 keyframes in 20 s, 1.1 s per frame); at 40 px the
+seed-3 sequence has 150 keyframes, 0.3 s per frame and the same ATE (2.5 cm); 60 px
+lost it.
 
 TrackFrame runs once per keyframe inside the source (initial guess of the keyframe
 pose, tracking-failure signal in ``source.tracks``), not per frame. A Rerun sink
@@ -131,15 +131,6 @@ def attach(pipe, data, cfg, hybrid: bool) -> DirectStage:
         raise RuntimeError("attach the direct source before the pipeline is initialized")
     if data.cam1 is None:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
-    pc = cfg.direct.points
-    solver = pipe.est.cfg.solver
-    over = {k: getattr(pc, k) for k in ("relinearize_skip", "relinearize_threshold")
-            if getattr(pc, k) is not None}
-    if over:   # read by the estimator when it creates its smoother (initialization)
-        pipe.est.cfg = dataclasses.replace(pipe.est.cfg, solver=dataclasses.replace(solver, **over))
-    if pc.keyframe_parallax_px is not None and not hybrid:
-        kc = dataclasses.replace(pipe.cfg.backend.keyframe, min_parallax_px=pc.keyframe_parallax_px)
-        pipe.cfg = dataclasses.replace(pipe.cfg, backend=dataclasses.replace(pipe.cfg.backend, keyframe=kc))
     source = PhotometricSource(pipe.est, StereoRig(data.cam0.calib, data.cam1.calib), cfg.direct)
     pipe.est.sources.append(source)
     if not hybrid:
