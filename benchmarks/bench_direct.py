@@ -30,8 +30,7 @@ sys.path[:0] = [str(ROOT)]
 
 from vio.evaluation import evaluate  # noqa: E402
 from vio.io.euroc import load_euroc  # noqa: E402
-from vio.run import default_config  # noqa: E402
-from vio.run import run_dataset  # noqa: E402
+from vio.run import default_config, run_dataset  # noqa: E402
 
 
 def dataset(args: argparse.Namespace) -> Path:

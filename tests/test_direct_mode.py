@@ -21,7 +21,7 @@ from vio.evaluation import evaluate
 from vio.io.euroc import load_euroc
 from vio.io.types import FeatureFrame
 from vio.pipeline import PipelineConfig
-from vio.run import default_config, run_dataset
+from vio.run import default_config, load_config, run_dataset
 
 
 def test_point_eval_matches_pairwise_temporal_eval():
@@ -164,7 +164,6 @@ def test_rerun_sink_logs_direct_points(tmp_path):
 def test_direct_mode_holds_td_at_the_sync_value():
     """No photometric factor involves td, so direct mode does not claim to estimate it;
     hybrid (with the KLT landmarks' td factors) does."""
-    from vio.run import load_config
     assert default_config("direct").backend.calib.estimate_td is False
     assert default_config("hybrid").backend.calib.estimate_td is True
     assert load_config(None, td=0.004, mode="direct").td_s == 0.004
@@ -173,7 +172,6 @@ def test_direct_mode_holds_td_at_the_sync_value():
 def test_photometric_mode_defaults_yield_to_yaml(tmp_path):
     """The backend settings of direct/hybrid mode are mode defaults, so a YAML file
     overrides them (they used to be forced after loading, silently ignoring it)."""
-    from vio.run import load_config
     d, h = default_config("direct").backend, default_config("hybrid").backend
     assert (d.keyframe.min_parallax_px, d.solver.relinearize_skip, d.solver.relinearize_threshold) == (40.0, 1, 0.005)
     assert h.keyframe.min_parallax_px == default_config("features").backend.keyframe.min_parallax_px

@@ -98,8 +98,7 @@ class KeyframeRates:
     """
 
     def __init__(self, margin_s: float = 0.1, td_tol_s: float = 2e-5) -> None:
-        self._t: dict[int, int] = {}
-        self._reading: dict[int, np.ndarray] = {}
+        self._kf: dict[int, tuple[int, np.ndarray]] = {}    # k -> (t_ns, reading at t_ns)
         self._cache: dict[int, tuple[float, int, np.ndarray]] = {}
         self._margin_ns = int(margin_s * 1e9)
         self._td_tol = td_tol_s
@@ -113,24 +112,23 @@ class KeyframeRates:
             seg = ImuData(seg.t_ns[keep], seg.gyro[keep], seg.accel[keep])
         if len(seg):
             self._hist = seg if self._hist is None else concat([self._hist, seg])
-            if not self._t:
+            if not self._kf:
                 self._trim(int(self._hist.t_ns[-1]) - self._margin_ns)
 
     def add_keyframe(self, k: int, t_ns: int, gyro: np.ndarray) -> None:
         """Keyframe ``k`` at ``t_ns`` with the raw reading ``gyro`` (3,) at that time."""
-        self._t[k] = int(t_ns)
-        self._reading[k] = np.asarray(gyro, float).reshape(3)
+        self._kf[k] = (int(t_ns), np.asarray(gyro, float).reshape(3))
         self._cache.pop(k, None)
 
     def __contains__(self, k: int) -> bool:
-        return k in self._t
+        return k in self._kf
 
     def rate(self, k: int, td_s: float) -> np.ndarray:
         """Mean raw gyro (3,) over [t_k, t_k + td] (or [t_k + td, t_k] for td < 0)."""
-        t, h = self._t[k], self._hist
+        (t, reading), h = self._kf[k], self._hist
         lo, hi = sorted((t, t + int(round(td_s * 1e9))))
         if h is None or hi <= h.t_ns[0] or lo >= h.t_ns[-1]:
-            return self._reading[k]
+            return reading
         lo, hi = max(lo, int(h.t_ns[0])), min(hi, int(h.t_ns[-1]))
         c = self._cache.get(k)
         if c is not None and abs(c[0] - td_s) < self._td_tol and c[1] == hi:
@@ -141,10 +139,10 @@ class KeyframeRates:
 
     def drop(self, k: int) -> None:
         """Forget keyframe ``k`` and the IMU history no remaining keyframe needs."""
-        for d in (self._t, self._reading, self._cache):
-            d.pop(k, None)
-        if self._t and self._hist is not None:
-            self._trim(min(self._t.values()) - self._margin_ns)
+        self._kf.pop(k, None)
+        self._cache.pop(k, None)
+        if self._kf and self._hist is not None:
+            self._trim(min(t for t, _ in self._kf.values()) - self._margin_ns)
 
     def _trim(self, t_keep: int) -> None:
         h = self._hist
@@ -154,5 +152,5 @@ class KeyframeRates:
 
     def reset_to(self, k: int) -> None:
         """Keep keyframe ``k`` only (a restarted window)."""
-        for j in [j for j in self._t if j != k]:
+        for j in [j for j in self._kf if j != k]:
             self.drop(j)

@@ -83,15 +83,23 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
     td variable is the residual offset on top of the sync layer's constant.
     """
     obs = [track.obs[f] for f in frames]
-    vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel,
-                       cfg.vision.td_velocity_max)
-    off = _row_offsets(obs, line_time_s)
-    track.td_shift = {f: (vel[i], off[i]) for i, f in enumerate(frames)}
+    vel, off = _cam0_shifts(track, frames, obs, vel, cfg.vision.td_velocity_max, line_time_s)
     lm = make_track(X(frames[0]), obs[0].uv, [X(f) for f in frames[1:]],
                     np.array([o.uv for o in obs[1:]]), anchor_vel=vel[0], vel=vel[1:],
                     anchor_offset=off[0], offset=off[1:])
     kernel, td_key = _vision_options(cfg)
     return landmark_factor(lm, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
+
+
+def _cam0_shifts(track: Track, frames: list[int], obs: list, vel: np.ndarray | None, vmax: float,
+                 line_time_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cam0 td velocities (n, 2) (measured where ``vel`` is None, capped at ``vmax``)
+    and row offsets (n,) of ``obs`` in ``frames``, recorded in ``track.td_shift`` for the
+    outlier check (:func:`reprojection_errors`)."""
+    vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
+    off = _row_offsets(obs, line_time_s)
+    track.td_shift = {f: (vel[i], float(off[i])) for i, f in enumerate(frames)}
+    return vel, off
 
 
 def _row_offsets(obs: list, line_time_s: float) -> np.ndarray:
@@ -149,9 +157,7 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma:
     frames = track.frames()
     obs = [track.obs[f] for f in frames]
     vmax = cfg.vision.td_velocity_max
-    vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
-    off = _row_offsets(obs, line_time_s)
-    track.td_shift = {f: (vel[i], off[i]) for i, f in enumerate(frames)}
+    vel, off = _cam0_shifts(track, frames, obs, vel, vmax, line_time_s)
     st_i = [i for i, o in enumerate(obs) if o.right_uv is not None]
     keys = [X(f) for f in frames[1:]] + [X(frames[i]) for i in st_i]
     uv = np.array([o.uv for o in obs[1:]] + [obs[i].right_uv for i in st_i]).reshape(-1, 2)

@@ -37,7 +37,7 @@ class Track:
     key: int | None = None
     anchor: int | None = None
     factor_indices: list[int] = field(default_factory=list)
-    td_shift: dict[int, np.ndarray] = field(default_factory=dict)
+    td_shift: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
     waited: int = 0
     rejected: bool = False
 
