@@ -79,7 +79,23 @@ def test_real_ground_truth_moves_little_and_agrees_with_the_gyro():
     tk = gt.t_ns[0] + 1_000_000_000 + np.arange(200) * 50_000_000
     nodes = np.unique(np.r_[tk, tk + 5_000_000])
     f = fuse_groundtruth(nodes, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib)
-    assert f.shift_pos_rms_m < 0.003 and np.degrees(f.shift_rot_rms_rad) < 0.2
+    assert f.shift_pos_rms_m < 0.004 and np.degrees(f.shift_rot_rms_rad) < 0.3
     _, R0 = interpolate_poses(gt.t_ns, gt.p_w, gt.q_wxyz, nodes)
     before, after = _gyro_residual(nodes, R0, f.bg, imu), _gyro_residual(nodes, f.R_w_b, f.bg, imu)
     assert after < 0.7 * before, (before, after)
+
+
+def test_datasheet_imu_model_makes_both_residual_sets_consistent():
+    """With the sensor's datasheet densities the whitened residuals of IMU factors and
+    ground-truth priors are both of order one; the estimator's x5-inflated model made
+    the smoother follow the ground truth (IMU chi^2/dof ~0.03), including the ground
+    truth's own high-frequency errors that no camera would see."""
+    from vio.imu import ImuNoiseConfig
+    gt, imu, calib = _load(shared("euroc_imu_gt", "MH_05_difficult"))
+    tk = gt.t_ns[0] + 14_000_000_000 + np.arange(300) * 50_000_000
+    nodes = np.unique(np.r_[tk, tk + 5_000_000])
+    f = fuse_groundtruth(nodes, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib)
+    assert 0.05 < f.imu_chi2_dof < 3.0 and 0.05 < f.gt_chi2_dof < 3.0, (f.imu_chi2_dof, f.gt_chi2_dof)
+    inflated = fuse_groundtruth(nodes, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib, noise=ImuNoiseConfig(5.0, 5.0))
+    assert inflated.imu_chi2_dof < 0.2 * f.imu_chi2_dof
+    assert inflated.shift_pos_rms_m < f.shift_pos_rms_m     # it stays glued to the ground truth

@@ -24,6 +24,7 @@ from vio.errors import DataError
 from vio.io.calib import load_camera, read_imu_yaml
 from vio.trajectory import interpolate_poses
 from vio.io.euroc import find_mav0
+from vio.imu import ImuNoiseConfig
 from vio.io.types import CameraCalib, ImuData
 from vio.sim.fuse import FusedTrajectory, fuse_groundtruth
 from vio.sim.tracks_io import read_groundtruth, read_table, write_outputs
@@ -41,8 +42,9 @@ class TrackGenConfig:
     the pinhole intrinsics (the undistorted image), not the wider distorted one.
     ``imu_consistent``: render from (and write as ground truth) the source ground
     truth smoothed against the real IMU (:mod:`vio.sim.fuse`, priors ``gt_pos_sigma_m``,
-    ``gt_rot_sigma_rad``) instead of the raw ground truth, whose time shift (up to
-    about 1 ms) and jitter against the gyro a real camera would not see.
+    ``gt_rot_sigma_rad``; the IMU with its sensor.yaml densities times
+    ``gt_imu_noise_scale``, 1 = the datasheet) instead of the raw ground truth, whose time
+    shift (up to about 1 ms) and jitter against the gyro a real camera would not see.
     """
 
     start_s: float = 0.0
@@ -73,6 +75,7 @@ class TrackGenConfig:
     imu_consistent: bool = True
     gt_pos_sigma_m: float = 0.002
     gt_rot_sigma_rad: float = 0.005
+    gt_imu_noise_scale: float = 1.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -89,6 +92,7 @@ class TrackGenConfig:
             "0 < min_depth_m < max_range_m": 0 < self.min_depth_m < self.max_range_m,
             "0 < max_incidence_deg <= 90": 0 < self.max_incidence_deg <= 90,
             "gt sigmas > 0": self.gt_pos_sigma_m > 0 and self.gt_rot_sigma_rad > 0,
+            "gt_imu_noise_scale > 0": self.gt_imu_noise_scale > 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -339,7 +343,8 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     gt_rows = None
     if fused is not None:
         truth["imu_consistent_gt"] = {"pos_shift_rms_m": fused.shift_pos_rms_m,
-                                      "rot_shift_rms_deg": float(np.degrees(fused.shift_rot_rms_rad))}
+                                      "rot_shift_rms_deg": float(np.degrees(fused.shift_rot_rms_rad)),
+                                      "imu_chi2_dof": fused.imu_chi2_dof, "gt_chi2_dof": fused.gt_chi2_dof}
         gt_rows = (fused.t_ns, fused.euroc_values())
     write_outputs(src, out, res, gt, gt_tum, imu, truth, gt_rows)
     return res
@@ -355,4 +360,5 @@ def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q
     pad = int(round(0.5e9 / cfg.rate_hz))    # a row either side brackets every exposure
     nodes = np.unique(np.concatenate([ends, [ends.min() - pad, ends.max() + pad]]))
     return fuse_groundtruth(nodes, gt.t_ns, gt_p, gt_q, data, read_imu_yaml(src / "imu0" / "sensor.yaml"),
-                            cfg.gt_pos_sigma_m, cfg.gt_rot_sigma_rad)
+                            cfg.gt_pos_sigma_m, cfg.gt_rot_sigma_rad,
+                            ImuNoiseConfig(cfg.gt_imu_noise_scale, cfg.gt_imu_noise_scale))
