@@ -40,6 +40,12 @@ class TrackGenConfig:
     ``outlier_rate``: fraction of observations displaced by ``outlier_px`` or
     (``swap_fraction`` of them) swapped in pairs within a frame. Image bounds use
     the pinhole intrinsics (the undistorted image), not the wider distorted one.
+    Track lifetimes: ``persistent_fraction`` of new tracks are kept until their point
+    leaves the view, the others are lost after a geometric number of frames (mean
+    ``mean_track_len``), like a KLT tracker that drops weak features early and keeps good
+    ones. Calibrated on the first 30 s of V1_01 against the real EqVIO KLT tracks shipped
+    with it: median length 15 frames for both, mean 34 (real 43), a typical observation's
+    track 92 frames long (real 124); purely geometric lifetimes gave 8, 12 and 23.
     ``imu_consistent``: render from (and write as ground truth) the source ground
     truth smoothed against the real IMU (:mod:`vio.sim.fuse`, priors ``gt_pos_sigma_m``,
     ``gt_rot_sigma_rad``; the IMU with its sensor.yaml densities times
@@ -59,6 +65,7 @@ class TrackGenConfig:
     max_features: int = 40
     grid: tuple[int, int] = (8, 5)
     mean_track_len: float = 15.0
+    persistent_fraction: float = 0.5
     redetect_cooldown: int = 5
     margin_xy_m: float = 1.5
     floor_margin_m: float = 0.3
@@ -86,6 +93,7 @@ class TrackGenConfig:
             "0 <= swap_fraction <= 1": 0 <= self.swap_fraction <= 1,
             "max_features >= 1": self.max_features >= 1, "grid >= 1": min(self.grid) >= 1,
             "mean_track_len >= 1": self.mean_track_len >= 1,
+            "0 <= persistent_fraction <= 1": 0 <= self.persistent_fraction <= 1,
             "redetect_cooldown >= 0": self.redetect_cooldown >= 0,
             "points_per_m2 > 0": self.points_per_m2 > 0, "max_points >= 1": self.max_points >= 1,
             "n_clutter_boxes >= 0": self.n_clutter_boxes >= 0,
@@ -216,10 +224,16 @@ def _pick_new(cand: np.ndarray, kept: np.ndarray, px: np.ndarray, need: int, cam
     return chosen
 
 
+PERSISTENT = np.iinfo(np.int64).max // 2
+"""Remaining lifetime (frames) of a track kept until its point leaves the view."""
+
+
 def _track(cfg: TrackGenConfig, cam: CameraCalib, pts: np.ndarray, nrm: np.ndarray, R_w_c: np.ndarray,
            p_w_c: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     """KLT-like tracking over frames. Returns (frame (M,), point (M,), id (M,), uv (M, 2), px (M, 2),
-    n_visible (F,)); a track lives a geometric number of frames, a lost point gets a new id."""
+    n_visible (F,)); a track lives until its point leaves the view (``persistent_fraction``
+    of them) or a geometric number of frames (mean ``mean_track_len``), a lost point gets a
+    new id."""
     n = len(pts)
     tid = np.full(n, -1, dtype=np.int64)
     life = np.zeros(n, dtype=np.int64)
@@ -240,6 +254,7 @@ def _track(cfg: TrackGenConfig, cam: CameraCalib, pts: np.ndarray, nrm: np.ndarr
                             px, need, cam, cfg, rng)
             tid[new] = np.arange(next_id, next_id + len(new))
             life[new] = rng.geometric(1.0 / cfg.mean_track_len, size=len(new))
+            life[new[rng.random(len(new)) < cfg.persistent_fraction]] = PERSISTENT
             next_id += len(new)
         idx = np.flatnonzero(tid >= 0)
         idx = idx[np.argsort(tid[idx])]

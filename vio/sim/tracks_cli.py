@@ -21,7 +21,7 @@ from vio.sim.tracks import TrackGenConfig, generate_tracks
 # option dest -> TrackGenConfig field
 _OVERRIDES = {"start": "start_s", "seconds": "duration_s", "td": "td_s", "seed": "seed",
               "noise_px": "noise_px", "outliers": "outlier_rate", "max_features": "max_features",
-              "track_len": "mean_track_len"}
+              "track_len": "mean_track_len", "persistent": "persistent_fraction"}
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -40,7 +40,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--noise-px", type=float, help="isotropic pixel noise sigma, px")
     p.add_argument("--outliers", type=float, help="outlier fraction of observations, e.g. 0.015")
     p.add_argument("--max-features", type=int, help="cap on features per frame")
-    p.add_argument("--track-len", type=float, help="mean tracker lifetime, frames")
+    p.add_argument("--track-len", type=float, help="mean lifetime of the tracks lost early, frames")
+    p.add_argument("--persistent", type=float,
+                   help="fraction of tracks kept until their point leaves the view (default 0.5)")
     p.set_defaults(func=run)
     return p
 
