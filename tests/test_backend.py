@@ -164,3 +164,36 @@ def test_recovers_from_injected_solver_failure(v101, monkeypatch, caplog):
     assert any("re-initializing from the last good state" in r.message for r in caplog.records)
     assert len(res.outputs) >= 380
     assert _ate(res, v101) < 0.1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("max_rejections", [1, 3])
+def test_rejected_track_restarts_under_its_id(sim_tracks_exact, max_rejections):
+    """A track displaced by ~37 px for three frames is dropped by the outlier check; its
+    id comes back as a fresh landmark once the front end tracks it cleanly again, unless
+    it has been dropped ``max_rejections`` times."""
+    import dataclasses
+    from vio.pipeline import Pipeline
+    from vio.sync import packets
+    data = sim_tracks_exact
+    ids = [set(f.ids.tolist()) for f in data.features]
+    lid = next(i for i in sorted(ids[90]) if all(i in s for s in ids[90:150]))
+    feats = [dataclasses.replace(f, uv=np.where((f.ids == lid)[:, None], f.uv + [0.08, 0.0], f.uv))
+             if 100 <= n < 103 else f for n, f in enumerate(data.features)]
+    cfg = PipelineConfig()
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, vision=dataclasses.replace(
+        cfg.backend.vision, max_rejections=max_rejections)))
+    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
+    back = []
+    for n, pkt in enumerate(packets(data.imu, data.cam0.t_ns[:150], cfg.td_s, feats[:150])):
+        pipe.process(pkt)
+        tr = pipe.est.lm.tracks.get(lid)
+        if n == 98:
+            assert tr is not None and tr.key is not None, "the track was in the graph before"
+        if n > 106:
+            back.append(tr is not None and tr.key is not None)
+    if max_rejections == 1:
+        assert lid in pipe.est.lm.rejected and not any(back)
+    else:
+        assert pipe.est.lm.strikes.get(lid) == 1 and lid not in pipe.est.lm.rejected
+        assert sum(back) > 15, f"the id re-entered the graph in {sum(back)} of {len(back)} frames"

@@ -31,6 +31,7 @@ class LandmarkManager:
         self.est = est
         self.tracks: dict[int, Track] = {}
         self.rejected: set[int] = set()
+        self.strikes: dict[int, int] = {}
         self._next_key = 0
         self._pending: list[tuple[Track, int]] = []
         self._motion_cache: dict = {}
@@ -286,7 +287,12 @@ class LandmarkManager:
     def outlier_removals(self, values: gtsam.Values
                          ) -> tuple[gtsam.NonlinearFactorGraph, dict, list[int], int]:
         """Factors of tracks whose worst reprojection error exceeds ``outlier_px`` or whose
-        depth left the valid range; those tracks are rejected for good."""
+        depth left the valid range. Such a track is dropped with all its observations; the
+        front end's next observation of the same id starts it afresh (as VINS-Mono does),
+        and only an id dropped ``max_rejections`` times is ignored for good. Rejecting at
+        once starved the estimator on long tracks: a track that entered at the default depth
+        while still and failed at take-off stayed tracked but ignored, and MH_04 ran with
+        2-18 landmarks for 30 s (ATE 0.95 m; with restarts 0.18 m)."""
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
@@ -301,7 +307,10 @@ class LandmarkManager:
             if bad_depth or (err.size and err.max() > vc.outlier_px):
                 self._retire_key(tr, g, stamps, removals)
                 del self.tracks[lid]
-                self.rejected.add(lid)
+                self.strikes[lid] = self.strikes.get(lid, 0) + 1
+                if self.strikes[lid] >= vc.max_rejections:
+                    self.rejected.add(lid)
+                    del self.strikes[lid]
                 n += 1
         return g, stamps, removals, n
 
