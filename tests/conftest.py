@@ -1,4 +1,5 @@
-"""Shared fixtures: location of the real EuRoC data in ../shared/data."""
+"""Shared test helpers: the real EuRoC data in ../shared/data (skipped when absent) and a
+batch solution of the backend graph to compare fixed-lag estimates with."""
 
 from __future__ import annotations
 
@@ -15,3 +16,28 @@ def shared(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real EuRoC data not available at {path} (../shared is absent)")
     return path
+
+
+def batch_solution(cfg, data, n: int, t_ns: int):
+    """Run the full smoother, then LM over all its live factors from its estimate; the
+    keyframe pose at ``t_ns`` after LM and in the smoother."""
+    import gtsam
+
+    from vio.backend import graph
+    from vio.pipeline import Pipeline
+    from vio.sync import packets
+    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
+    for pkt in packets(data.imu, data.cam0.t_ns[:n], cfg.td_s, data.features[:n]):
+        pipe.process(pkt)
+    est = pipe.est
+    fg = est.smoother.getFactors()
+    g = gtsam.NonlinearFactorGraph()
+    for i in range(fg.size()):
+        f = fg.at(i)
+        if f is not None:
+            g.add(f)
+    values = est.smoother.calculateEstimate()
+    opt = gtsam.LevenbergMarquardtOptimizer(g, values, gtsam.LevenbergMarquardtParams())
+    sol = opt.optimize()
+    k = next(f for f, t in est.kf_t.items() if t == t_ns)
+    return sol.atPose3(graph.X(k)), values.atPose3(graph.X(k))
