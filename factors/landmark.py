@@ -39,8 +39,8 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, check_model, project_batch,
-                                tangent_basis)
+from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, AnchorWhitening, Projected,
+                                check_model, project_batch, tangent_basis)
 from factors.robust import RobustKernel, block_sqrt_weights, reweight_blocks
 from factors.td_projection import td_project_batch
 
@@ -112,19 +112,30 @@ def _block_cols(n: int, use_td: bool) -> tuple:
     return tuple(zip(ends[:-1], ends[1:]))
 
 
-def _evaluate(args: list, track: LandmarkTrack, model: str, sigma: float,
-              robust: RobustKernel | None, use_td: bool, weights: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """Stacked residual (2n,) and Jacobian (2n, sum of key dims), key blocks side by side."""
+def _project(args: list, track: LandmarkTrack, model: str, use_td: bool) -> Projected:
     n = track.n
     Tjs = np.array([T.matrix() for T in args[3:3 + n]])
     if use_td:
-        p = td_project_batch(args[2].matrix(), Tjs, args[1].matrix(), args[0][0], args[3 + n][0],
-                             track.anchor_uv, track.anchor_vel, track.anchor_offset,
-                             track.uv, track.vel, track.offset, model, track.basis)
-    else:
-        p = project_batch(args[2].matrix(), Tjs, args[1].matrix(), args[0][0], track.anchor_uv,
-                          track.uv, model, track.basis)
+        return td_project_batch(args[2].matrix(), Tjs, args[1].matrix(), args[0][0], args[3 + n][0],
+                                track.anchor_uv, track.anchor_vel, track.anchor_offset,
+                                track.uv, track.vel, track.offset, model, track.basis)
+    return project_batch(args[2].matrix(), Tjs, args[1].matrix(), args[0][0], track.anchor_uv,
+                         track.uv, model, track.basis)
+
+
+def landmark_anchor_jacobian(args: list, track: LandmarkTrack, model: str = "pinhole",
+                             use_td: bool = False) -> np.ndarray:
+    """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`landmark_residual` order), for
+    :func:`factors.projection.anchor_whitening`."""
+    return _project(args, track, model, use_td).uvi.reshape(2 * track.n, 2)
+
+
+def _evaluate(args: list, track: LandmarkTrack, model: str, sigma: float,
+              robust: RobustKernel | None, use_td: bool, weights: np.ndarray | None,
+              whiten: AnchorWhitening | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked residual (2n,) and Jacobian (2n, sum of key dims), key blocks side by side."""
+    n = track.n
+    p = _project(args, track, model, use_td)
     r, J = p.r, p.J
     if weights is not None:
         sw = np.sqrt(np.asarray(weights, dtype=float).reshape(n))
@@ -132,20 +143,24 @@ def _evaluate(args: list, track: LandmarkTrack, model: str, sigma: float,
         J *= np.repeat(sw, 2)[:, None]
     elif robust is not None and robust.kind != "none":
         reweight_blocks(r, J, sigma, robust)  # IRLS per 2-row block, weights from this r
+    if whiten is not None:   # anchor noise (constant W, like a noise model)
+        return whiten.apply(r.reshape(2 * n)), whiten.apply(J)
     return r.reshape(2 * n), J
 
 
 def landmark_residual(args: list, track: LandmarkTrack, model: str = "pinhole",
                       sigma: float = 1.0, robust: RobustKernel | None = None,
-                      use_td: bool = False, weights: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, list[np.ndarray]]:
+                      use_td: bool = False, weights: np.ndarray | None = None,
+                      whiten: AnchorWhitening | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
     """Stacked residual (2n,) and one Jacobian block per key, in :func:`landmark_keys` order.
 
     ``args``: ``[lambda (1,), T_b_c, T_anchor, T_j1..T_jn]`` (+ ``td (1,)`` if ``use_td``).
     ``sigma`` (normalized units) whitens block norms for the robust weights; ``weights``
-    (n,) overrides the IRLS weights ``w_k`` (not their square roots).
+    (n,) overrides the IRLS weights ``w_k`` (not their square roots); ``whiten``:
+    constant, applied after the robust weights (the anchor-noise whitening of
+    :func:`factors.projection.anchor_whitening`).
     """
-    r, J = _evaluate(args, track, model, sigma, robust, use_td, weights)
+    r, J = _evaluate(args, track, model, sigma, robust, use_td, weights, whiten)
     return r, [J[:, a:b] for a, b in _block_cols(track.n, use_td)]
 
 
@@ -159,11 +174,14 @@ def landmark_weights(args: list, track: LandmarkTrack, model: str, sigma: float,
 def landmark_factor(track: LandmarkTrack, lam_key: int, extrinsic_key: int, sigma: float,
                     model: str = "pinhole", robust: RobustKernel | None = None,
                     td_key: int | None = None,
-                    health: FactorHealth | None = None) -> gtsam.CustomFactor:
+                    health: FactorHealth | None = None,
+                    whiten: AnchorWhitening | None = None) -> gtsam.CustomFactor:
     """``gtsam.CustomFactor`` over :func:`landmark_keys` with isotropic noise ``sigma``.
 
-    ``td_key`` selects the td variant. Construction is cheap (no evaluation): rebuild it
-    when the landmark gains an observation or is re-anchored.
+    ``td_key`` selects the td variant. ``whiten``: constant whitening of the
+    stacked residual (anchor noise, :func:`factors.projection.anchor_whitening`).
+    Construction is cheap (no evaluation): rebuild it when the landmark gains an
+    observation or is re-anchored.
     """
     check_model(model)
     if not sigma > 0:
@@ -176,6 +194,6 @@ def landmark_factor(track: LandmarkTrack, lam_key: int, extrinsic_key: int, sigm
     noise = gtsam.noiseModel.Isotropic.Sigma(2 * track.n, float(sigma))
 
     def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
-        return _evaluate(args, track, model, sigma, robust, use_td, None)  # stacked J
+        return _evaluate(args, track, model, sigma, robust, use_td, None, whiten)  # stacked J
 
     return custom_factor(noise, keys, kinds, fn, health)

@@ -251,6 +251,30 @@ def _project_kernel(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
                                     + duv[k, 0] * vel_j[o, 0] + duv[k, 1] * vel_j[o, 1])
 
 
+@_njit
+def _transfer_kernel(Ti: np.ndarray, Tj: np.ndarray, Tc: np.ndarray, lam: float, uv_i: np.ndarray,
+                     Q: np.ndarray, M: np.ndarray, D: np.ndarray) -> None:
+    pw, wi, RcTtc, A, Sm, G = _anchor_terms(Ti, Tc, lam, uv_i)
+    _transfer_into(np.ascontiguousarray(Tj[:3, :3]), np.ascontiguousarray(Tj[:3, 3]),
+                   np.ascontiguousarray(Tc[:3, :3]), np.ascontiguousarray(Tc[:3, 3]), lam, pw, wi,
+                   RcTtc, A, Sm, G, Q, M, D)
+
+
+def transfer_point(Ti: np.ndarray, Tj: np.ndarray, Tc: np.ndarray, lam: float,
+                   uv_i: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The seed-004 transfer of one anchored point into camera j, with its derivatives.
+
+    ``Ti``, ``Tj``, ``Tc`` (4, 4): ``T_w_bi``, ``T_w_bj``, ``T_b_c``; ``lam`` (1/m) and ``uv_i``
+    (2,) the anchor's inverse depth and ray. Returns ``Q = lam * P_cj`` (3,), ``M = dQ/dm_i``
+    (3, 3) and ``D = dQ/d[lam, T_c, T_i, T_j]`` (3, 19) in the ``COL_*`` layout.
+    """
+    Q, M, D = np.empty(3), np.empty((3, 3)), np.empty((3, 19))
+    _transfer_kernel(np.ascontiguousarray(Ti, dtype=float), np.ascontiguousarray(Tj, dtype=float),
+                     np.ascontiguousarray(Tc, dtype=float), float(lam),
+                     np.ascontiguousarray(uv_i, dtype=float), Q, M, D)
+    return Q, M, D
+
+
 _NO_VEL_I = np.zeros(2)
 
 
@@ -294,6 +318,41 @@ def project_batch(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
                     np.ascontiguousarray(basis, dtype=float), model == "sphere",
                     vel_i, vel_j, J.shape[1] - 1 if with_vel else -1, r, J, Juvi, Juvj, valid)
     return Projected(r, J, Juvi, Juvj, valid)
+
+
+class AnchorWhitening(NamedTuple):
+    """``W = I + U diag(d) U^T`` (m, m), a rank-2 update of the identity; see
+    :func:`anchor_whitening`. ``apply`` costs O(m) per column instead of O(m^2)."""
+
+    U: np.ndarray  # (m, r), orthonormal columns, r <= 2
+    d: np.ndarray  # (r,)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """``W x`` for x (m,) or (m, c)."""
+        if x.ndim == 1:
+            return x + self.U @ (self.d * (self.U.T @ x))
+        return x + self.U @ (self.d[:, None] * (self.U.T @ x))
+
+    def matrix(self) -> np.ndarray:
+        return np.eye(self.U.shape[0]) + (self.U * self.d) @ self.U.T
+
+
+def anchor_whitening(G: np.ndarray) -> AnchorWhitening:
+    """Whitening ``W = (I + G G^T)^(-1/2)`` (m, m) of the residuals of one anchored landmark
+    whose anchor observation is noisy too.
+
+    The inverse-depth factors take the anchor observation as the exact ray; with isotropic
+    noise ``sigma`` on it as on every target observation, the stacked residual's covariance
+    is ``sigma^2 (I + G G^T)`` to first order, ``G = dr/duv_anchor`` (m, 2) (the ``uvi``
+    blocks of :func:`project_batch`, stacked). ``W r`` then has covariance ``sigma^2 I``:
+    the anchor noise is marginalized analytically and the landmark keeps one parameter.
+    With ``G = U diag(s)^(1/2) V^T``, ``W = I + U ((1 + s)^(-1/2) - 1) U^T``.
+    """
+    G = np.asarray(G, dtype=float)
+    s, V = np.linalg.eigh(G.T @ G)
+    keep = s > 1e-12 * max(1.0, float(s.max(initial=0.0)))
+    U = (G @ V[:, keep]) / np.sqrt(s[keep])
+    return AnchorWhitening(U, (1.0 + s[keep]) ** -0.5 - 1.0)
 
 
 def single_blocks(J: np.ndarray) -> list[np.ndarray]:

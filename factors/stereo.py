@@ -32,7 +32,8 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.projection import COL_TJ, check_model, project_batch, tangent_basis
+from factors.projection import (COL_TJ, AnchorWhitening, Projected, check_model, project_batch,
+                                tangent_basis)
 from factors.robust import RobustKernel, reweight_blocks
 from factors.td_projection import td_project_batch
 
@@ -105,24 +106,36 @@ def stereo_keys(track: StereoTrack, lam_key: int, extrinsic_key: int,
     return keys + ([int(td_key)] if td_key is not None else [])
 
 
-def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigma: float = 1.0,
-                    robust: RobustKernel | None = None, use_td: bool = False
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Stacked residual (2n,) and Jacobian (2n, 13 + 6k [+1]) in :func:`stereo_keys` order.
-
-    ``args``: ``[lambda (1,), T_b_c0, T_anchor, T_m1..T_mk]`` (+ ``td (1,)``).
-    """
-    n, k = track.n, len(track.keys)
+def _project(args: list, track: StereoTrack, model: str, use_td: bool) -> Projected:
+    k = len(track.keys)
     bodies = [args[2]] + list(args[3:3 + k])
     Tjs = np.array([bodies[t].matrix() @ track.C if rt else bodies[t].matrix()
                     for t, rt in zip(track.target, track.right)])
     Ti, Tc, lam = args[2].matrix(), args[1].matrix(), float(args[0][0])
     if use_td:
-        p = td_project_batch(Ti, Tjs, Tc, lam, float(args[3 + k][0]), track.anchor_uv,
-                             track.anchor_vel, track.anchor_offset, track.uv, track.vel,
-                             track.offset, model, track.basis)
-    else:
-        p = project_batch(Ti, Tjs, Tc, lam, track.anchor_uv, track.uv, model, track.basis)
+        return td_project_batch(Ti, Tjs, Tc, lam, float(args[3 + k][0]), track.anchor_uv,
+                                track.anchor_vel, track.anchor_offset, track.uv, track.vel,
+                                track.offset, model, track.basis)
+    return project_batch(Ti, Tjs, Tc, lam, track.anchor_uv, track.uv, model, track.basis)
+
+
+def stereo_anchor_jacobian(args: list, track: StereoTrack, model: str = "pinhole",
+                           use_td: bool = False) -> np.ndarray:
+    """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`stereo_residual` order), for
+    :func:`factors.projection.anchor_whitening`."""
+    return _project(args, track, model, use_td).uvi.reshape(2 * track.n, 2)
+
+
+def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigma: float = 1.0,
+                    robust: RobustKernel | None = None, use_td: bool = False,
+                    whiten: AnchorWhitening | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked residual (2n,) and Jacobian (2n, 13 + 6k [+1]) in :func:`stereo_keys` order.
+
+    ``args``: ``[lambda (1,), T_b_c0, T_anchor, T_m1..T_mk]`` (+ ``td (1,)``); ``whiten``:
+    constant whitening applied last (anchor noise, :func:`factors.projection.anchor_whitening`).
+    """
+    n, k = track.n, len(track.keys)
+    p = _project(args, track, model, use_td)
     J = np.zeros((2 * n, COL_TJ + 6 * k + (1 if use_td else 0)), order="F")
     J[:, :COL_TJ] = p.J[:, :COL_TJ]
     if use_td:
@@ -139,14 +152,17 @@ def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigm
     r = p.r.copy()
     if robust is not None and robust.kind != "none":
         reweight_blocks(r, J, sigma, robust)
+    if whiten is not None:
+        return whiten.apply(r.reshape(2 * n)), whiten.apply(J)
     return r.reshape(2 * n), J
 
 
 def stereo_factor(track: StereoTrack, lam_key: int, extrinsic_key: int, sigma: float,
                   model: str = "pinhole", robust: RobustKernel | None = None,
-                  td_key: int | None = None, health: FactorHealth | None = None
-                  ) -> gtsam.CustomFactor:
-    """``gtsam.CustomFactor`` of a landmark's right-camera observations."""
+                  td_key: int | None = None, health: FactorHealth | None = None,
+                  whiten: AnchorWhitening | None = None) -> gtsam.CustomFactor:
+    """``gtsam.CustomFactor`` of a landmark's right-camera (and, mixed, cam0) observations;
+    ``whiten`` as in :func:`stereo_residual`."""
     check_model(model)
     keys = stereo_keys(track, lam_key, extrinsic_key, td_key)
     use_td = td_key is not None
@@ -154,6 +170,6 @@ def stereo_factor(track: StereoTrack, lam_key: int, extrinsic_key: int, sigma: f
     noise = gtsam.noiseModel.Isotropic.Sigma(2 * track.n, float(sigma))
 
     def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
-        return stereo_residual(args, track, model, sigma, robust, use_td)
+        return stereo_residual(args, track, model, sigma, robust, use_td, whiten)
 
     return custom_factor(noise, keys, kinds, fn, health)

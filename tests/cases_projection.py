@@ -13,8 +13,9 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors.landmark import landmark_factor, landmark_residual, landmark_weights, make_track
-from factors.projection import projection_factor, projection_residual
+from factors.landmark import (landmark_anchor_jacobian, landmark_factor, landmark_residual,
+                              landmark_weights, make_track)
+from factors.projection import anchor_whitening, projection_factor, projection_residual
 from factors.robust import RobustKernel, robust_noise
 from factors.td_projection import TdObservation, td_projection_factor, td_projection_residual
 from jacobian_case import JacobianCase
@@ -112,7 +113,10 @@ def td_case(name: str, model: str, *, td: float = 0.012, vel_scale: float = 1.0,
 
 def landmark_case(name: str, model: str, *, n: int = 5, use_td: bool = False,
                   robust: str | None = None, with_anchor_obs: bool = False,
-                  degenerate: bool = False, **scene_kw) -> JacobianCase:
+                  anchor_noise: bool = False, degenerate: bool = False,
+                  **scene_kw) -> JacobianCase:
+    """``anchor_noise``: the factor whitens its residual with the anchor-noise matrix W of
+    the case's state (a constant of the factor, as in the backend)."""
     def build(rng: np.random.Generator):
         Ti, poses, Tc, lam, uvi, uvs = scene(rng, n, **scene_kw)
         if robust:
@@ -126,8 +130,6 @@ def landmark_case(name: str, model: str, *, n: int = 5, use_td: bool = False,
                            vel=rng.normal(size=(m, 2)), anchor_offset=0.004,
                            offset=rng.uniform(-0.01, 0.02, m))
         kernel = RobustKernel(robust) if robust else None
-        factor = landmark_factor(track, L(0), C(0), SIGMA, model, kernel,
-                                 T(0) if use_td else None)
         values = _values([(L(0), np.array([lam])), (C(0), Tc), (X(0), Ti)]
                          + list(zip(frame_keys, poses))
                          + ([(T(0), np.array([0.009]))] if use_td else []))
@@ -137,12 +139,18 @@ def landmark_case(name: str, model: str, *, n: int = 5, use_td: bool = False,
             return [v.atVector(L(0)), v.atPose3(C(0)), v.atPose3(X(0))] + [
                 v.atPose3(k) for k in frame_keys] + ([v.atVector(T(0))] if use_td else [])
 
+        W = (anchor_whitening(landmark_anchor_jacobian(args_of(values), track, model, use_td))
+             if anchor_noise else None)
+        factor = landmark_factor(track, L(0), C(0), SIGMA, model, kernel,
+                                 T(0) if use_td else None, whiten=W)
+
         w0 = landmark_weights(args_of(values), track, model, SIGMA, kernel, use_td)
         if robust:
             assert w0.min() < 0.9, "robust case must have an active (down-weighted) observation"
 
         def residual(v: gtsam.Values):
-            return landmark_residual(args_of(v), track, model, SIGMA, kernel, use_td, weights=w0)
+            return landmark_residual(args_of(v), track, model, SIGMA, kernel, use_td, weights=w0,
+                                     whiten=W)
 
         return factor, values, residual, kinds
 
@@ -164,6 +172,8 @@ CASES: list[JacobianCase] = [
     landmark_case("landmark_sphere_td", "sphere", use_td=True),
     landmark_case("landmark_pinhole_huber", "pinhole", robust="huber"),
     landmark_case("landmark_sphere_td_cauchy", "sphere", use_td=True, robust="cauchy"),
+    landmark_case("landmark_pinhole_td_anchor_noise", "pinhole", use_td=True, anchor_noise=True),
+    landmark_case("landmark_sphere_huber_anchor_noise", "sphere", robust="huber", anchor_noise=True),
     # degenerate states
     projection_case("projection_pinhole_tiny_parallax", "pinhole", parallax=1e-6, rot=1e-6,
                     degenerate=True),
@@ -187,4 +197,8 @@ CASES: list[JacobianCase] = [
                   with_anchor_obs=True, degenerate=True),
     landmark_case("landmark_pinhole_td_tiny_parallax", "pinhole", use_td=True, n=3,
                   parallax=1e-6, rot=1e-6, degenerate=True),
+    landmark_case("landmark_pinhole_anchor_noise_same_pose", "pinhole", same_pose=True,
+                  anchor_noise=True, degenerate=True),
+    landmark_case("landmark_sphere_td_anchor_noise_far", "sphere", use_td=True, lam=1e-3,
+                  anchor_noise=True, n=2, degenerate=True),
 ]

@@ -9,7 +9,8 @@ import numpy as np
 
 from cases_projection import random_pose
 from factors.robust import RobustKernel
-from factors.stereo import make_stereo_track, stereo_factor, stereo_residual
+from factors.projection import anchor_whitening
+from factors.stereo import make_stereo_track, stereo_anchor_jacobian, stereo_factor, stereo_residual
 from jacobian_case import JacobianCase
 
 X, E, L, T = (gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.E, gtsam.symbol_shorthand.L,
@@ -44,9 +45,11 @@ def _scene(rng: np.random.Generator, n: int, far: bool, tiny: bool):
 
 def stereo_case(name: str, model: str, *, n: int = 3, use_td: bool = False,
                 robust: str | None = None, far: bool = False, tiny: bool = False,
-                degenerate: bool = False, mixed: bool = False) -> JacobianCase:
+                degenerate: bool = False, mixed: bool = False,
+                anchor_noise: bool = False) -> JacobianCase:
     """``mixed``: the cam0 observations of the non-anchor bodies join the cam1 ones
-    in the same factor (one callback per stereo landmark)."""
+    in the same factor (one callback per stereo landmark); ``anchor_noise``: the factor
+    whitens with the anchor-noise matrix of the case's state."""
     def build(rng: np.random.Generator):
         Tc0, Tc1, Ta, others, lam, uva, uvs, uvs0 = _scene(rng, n, far, tiny)
         C = Tc1.compose(Tc0.inverse())
@@ -61,7 +64,6 @@ def stereo_case(name: str, model: str, *, n: int = 3, use_td: bool = False,
                                   vel=rng.normal(size=(m, 2)), anchor_offset=0.003,
                                   offset=rng.uniform(-0.01, 0.01, m), right=right)
         kernel = RobustKernel(robust) if robust else None
-        factor = stereo_factor(track, L(0), E(0), SIGMA, model, kernel, T(0) if use_td else None)
         values = gtsam.Values()
         values.insert(L(0), np.array([lam]))
         values.insert(E(0), Tc0)
@@ -71,10 +73,17 @@ def stereo_case(name: str, model: str, *, n: int = 3, use_td: bool = False,
             values.insert(T(0), np.array([0.007]))
         kinds = [1, "pose3", "pose3"] + ["pose3"] * n + ([1] if use_td else [])
 
-        def residual(v: gtsam.Values):
-            args = [v.atVector(L(0)), v.atPose3(E(0))] + [v.atPose3(k) for k in body_keys] + (
+        def args_of(v: gtsam.Values) -> list:
+            return [v.atVector(L(0)), v.atPose3(E(0))] + [v.atPose3(k) for k in body_keys] + (
                 [v.atVector(T(0))] if use_td else [])
-            r, J = stereo_residual(args, track, model, SIGMA, None, use_td)
+
+        W = (anchor_whitening(stereo_anchor_jacobian(args_of(values), track, model, use_td))
+             if anchor_noise else None)
+        factor = stereo_factor(track, L(0), E(0), SIGMA, model, kernel, T(0) if use_td else None,
+                               whiten=W)
+
+        def residual(v: gtsam.Values):
+            r, J = stereo_residual(args_of(v), track, model, SIGMA, None, use_td, W)
             ends = np.cumsum([1, 6, 6] + [6] * n + ([1] if use_td else []))
             return r, [J[:, a:b] for a, b in zip(np.r_[0, ends[:-1]], ends)]
 
@@ -97,4 +106,8 @@ CASES: list[JacobianCase] = [
     stereo_case("stereo_mixed_pinhole_td", "pinhole", use_td=True, mixed=True),
     stereo_case("stereo_mixed_sphere", "sphere", mixed=True, n=4),
     stereo_case("stereo_mixed_tiny_motion", "pinhole", tiny=True, mixed=True, degenerate=True),
+    stereo_case("stereo_mixed_pinhole_td_anchor_noise", "pinhole", use_td=True, mixed=True,
+                anchor_noise=True),
+    stereo_case("stereo_sphere_anchor_noise_anchor_only", "sphere", n=0, anchor_noise=True,
+                degenerate=True),
 ]
