@@ -8,12 +8,16 @@ time offset td (1-vector, s, on top of the offset applied by the sync layer),
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
-from factors.landmark import landmark_factor, make_track
+from factors.landmark import landmark_anchor_jacobian, landmark_factor, make_track
+from factors.projection import anchor_whitening
+from factors.reanchor import depth_transfer_factor
 from factors.robust import RobustKernel
-from factors.stereo import make_stereo_track, stereo_factor
+from factors.stereo import make_stereo_track, stereo_anchor_jacobian, stereo_factor
 from vio.backend.config import BackendConfig, CalibConfig, InitConfig
 from vio.backend.init import InitialState
 from vio.backend.landmarks import Track
@@ -72,11 +76,36 @@ def zero_velocity(k: int, sigma: float) -> gtsam.NonlinearFactor:
     return gtsam.PriorFactorVector(V(k), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, sigma))
 
 
+@dataclass(frozen=True)
+class LinPoint:
+    """The estimate a landmark factor's constant anchor-noise whitening is computed at
+    (``VisionConfig.anchor_noise``): inverse depth ``lam`` (1/m), ``T_b_c``, body poses
+    ``T_w_b`` by keyframe index, residual ``td`` (s)."""
+
+    lam: float
+    T_b_c: gtsam.Pose3
+    poses: dict[int, gtsam.Pose3]
+    td: float
+
+
+def _whitening(kind: str, track, at: LinPoint | None, body_poses: list[gtsam.Pose3],
+               cfg: BackendConfig, td_key: int | None) -> np.ndarray | None:
+    """W of :func:`factors.projection.anchor_whitening` for a landmark or stereo track at
+    ``at`` (``body_poses``: anchor first, then the track's other body keys in order)."""
+    if at is None or not cfg.vision.anchor_noise:
+        return None
+    args = [np.array([at.lam]), at.T_b_c, *body_poses] + ([np.array([at.td])] if td_key is not None else [])
+    jac = landmark_anchor_jacobian if kind == "mono" else stereo_anchor_jacobian
+    return anchor_whitening(jac(args, track, cfg.vision.model, td_key is not None))
+
+
 def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, sigma: float,
-                          line_time_s: float, vel: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+                          line_time_s: float, vel: np.ndarray | None = None,
+                          at: LinPoint | None = None) -> gtsam.NonlinearFactor:
     """The per-landmark projection factor over the given keyframes (first = anchor).
     ``vel`` (n, 2): image velocities of the observations in ``frames`` for the td
-    term (default: the measured ones).
+    term (default: the measured ones); ``at``: the current estimate, for the anchor-noise
+    whitening (none without it).
 
     Observation time offsets: ``row / ROWS * t_readout`` for rolling shutter (seed
     004, projection_td_factor); td recorded at observation time is 0 because the
@@ -88,7 +117,8 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
                     np.array([o.uv for o in obs[1:]]), anchor_vel=vel[0], vel=vel[1:],
                     anchor_offset=off[0], offset=off[1:])
     kernel, td_key = _vision_options(cfg)
-    return landmark_factor(lm, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
+    W = _whitening("mono", lm, at, [at.poses[f] for f in frames] if at else [], cfg, td_key)
+    return landmark_factor(lm, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key, whiten=W)
 
 
 def _cam0_shifts(track: Track, frames: list[int], obs: list, vel: np.ndarray | None, vmax: float,
@@ -145,16 +175,30 @@ def image_velocity(uv: np.ndarray, depth: np.ndarray, omega_c: np.ndarray,
                      (-vy + v * vz) / depth + (1 + v * v) * wx - u * v * wy - u * wz], axis=-1)
 
 
+def build_depth_transfer(old_key: int, new_key: int, old_anchor: int, new_anchor: int,
+                         uv_old: np.ndarray, lam_old: float, shift: tuple | None,
+                         cfg: BackendConfig) -> gtsam.NonlinearFactor:
+    """``factors.reanchor`` factor between a landmark's old key (anchored in ``old_anchor``
+    with observation ``uv_old``, estimate ``lam_old``) and its new key; ``shift``: the old
+    anchor observation's ``(vel, offset)`` from ``Track.td_shift`` (None: unshifted)."""
+    _, td_key = _vision_options(cfg)
+    vel, off = shift if shift is not None else (np.zeros(2), 0.0)
+    keys = [old_key, new_key, EXTRINSIC, X(old_anchor), X(new_anchor)] + ([td_key] if td_key is not None else [])
+    return depth_transfer_factor(keys, uv_old, lam_old, cfg.vision.reanchor_sigma,
+                                 vel if td_key is not None else None, float(off))
+
+
 def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma: float,
                         line_time_s: float, vel: np.ndarray | None = None,
-                        rvel: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+                        rvel: np.ndarray | None = None, at: LinPoint | None = None,
+                        frames: list[int] | None = None) -> gtsam.NonlinearFactor:
     """All observations of a stereo landmark in one factor (``factors.stereo``, mixed
     track): cam0 of the non-anchor keyframes and cam1 of every keyframe that matched
     it; ``C = T_b_c1 T_b_c0^-1``. One Python callback per linearization instead of a
     cam0 and a cam1 factor. ``vel`` / ``rvel`` (n, 2): cam0 / cam1 velocities of the
-    observations in the track's frames for the td term (default: the measured ones;
-    ``rvel`` rows of frames without a cam1 match are ignored)."""
-    frames = track.frames()
+    observations in ``frames`` (anchor first; default: the track's frames) for the td term
+    (default: the measured ones; ``rvel`` rows of frames without a cam1 match are ignored)."""
+    frames = track.frames() if frames is None else frames
     obs = [track.obs[f] for f in frames]
     vmax = cfg.vision.td_velocity_max
     vel, off = _cam0_shifts(track, frames, obs, vel, vmax, line_time_s)
@@ -168,7 +212,10 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma:
                            offset=np.r_[off[1:], off[st_i]],
                            right=[False] * (len(frames) - 1) + [True] * len(st_i))
     kernel, td_key = _vision_options(cfg)
-    return stereo_factor(st, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key)
+    by_key = {X(f): at.poses[f] for f in frames} if at else {}
+    W = _whitening("stereo", st, at, [by_key[k] for k in (st.anchor_key, *st.keys)] if at else [], cfg,
+                   td_key)
+    return stereo_factor(st, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key, whiten=W)
 
 
 def camera_table(values: gtsam.Values, frames: list[int]) -> tuple[dict, np.ndarray, np.ndarray]:

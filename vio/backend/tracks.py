@@ -3,12 +3,15 @@
 Per keyframe: new observations are appended; a track enters the graph once its
 depth can be triangulated (or it has waited long enough); its factor is rebuilt
 whenever it gains an observation; live tracks are re-anchored before their
-anchor is marginalized; dead tracks are marginalized with their anchor; tracks
-with large reprojection errors or non-positive depth are removed.
+anchor is marginalized, handing what they measured in the leaving keyframes to the
+new key (farewell and depth-transfer factors, marginalized with those keyframes);
+dead tracks are marginalized with their anchor; tracks with large reprojection
+errors or non-positive depth are dropped and restart from their next observation.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import gtsam
@@ -90,20 +93,16 @@ class LandmarkManager:
         for lid in sorted(self.tracks, key=lambda i: -len(self.tracks[i].obs)):
             tr = self.tracks[lid]
             live = k in tr.obs
-            p_w = None
             if tr.anchor is not None and tr.anchor in leave:
                 if not live:      # dead: marginalized with its anchor this update
                     del self.tracks[lid]
                     continue
-                p_w = self._point_w(tr)
-                self._retire_key(tr, g, stamps, removals)
+                self._hand_over(tr, k, pred, leave, g, v, stamps, removals)
             for f in [f for f in tr.obs if f in leave]:
                 del tr.obs[f]
             if not tr.obs:
                 del self.tracks[lid]
                 continue
-            if p_w is not None:
-                self._reanchor(tr, p_w, k, pred, v)
             if not live:
                 if tr.key is not None:
                     stamps[tr.key] = self.est.kf_t[tr.anchor] * 1e-9
@@ -118,6 +117,36 @@ class LandmarkManager:
                 self._add_factor(tr, g, k, pred, float(lam))
                 stamps[tr.key] = t
         return removals
+
+    def _hand_over(self, tr: Track, k: int, pred: gtsam.NavState, leave: set[int],
+                   g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict,
+                   removals: list[int]) -> None:
+        """Re-anchor a live track whose anchor leaves: a new key in its oldest remaining
+        keyframe, depth transferred from the current point. With
+        ``VisionConfig.marginalize_reanchored`` the leaving observations become targets of a
+        farewell factor of the new key and a depth-transfer factor ties the old key to the
+        new one; the smoother marginalizes both with the leaving keyframes, so what the track
+        measured there stays in its prior instead of being dropped."""
+        vals = self.est.values
+        p_w = self._point_w(tr)
+        lam_o = float(vals.atVector(tr.key)[0]) if tr.key is not None and vals.exists(tr.key) else 0.0
+        old = (tr.key, tr.anchor, lam_o, tr.td_shift.get(tr.anchor))
+        leaving = {f: tr.obs.pop(f) for f in sorted(tr.obs) if f in leave}
+        self._retire_key(tr, g, stamps, removals)
+        if p_w is None or not tr.obs:
+            return
+        self._reanchor(tr, p_w, k, pred, v)
+        if tr.key is None:
+            return
+        stamps[tr.key] = self.est.kf_t[k] * 1e-9
+        if self.est.cfg.vision.marginalize_reanchored:
+            lam = float(v.atVector(tr.key)[0])
+            anchor = dataclasses.replace(tr.obs[tr.anchor], right_uv=None, right_velocity=None)
+            farewell = Track(tr.lid, {tr.anchor: anchor, **leaving}, tr.key, tr.anchor)
+            g.add(self._factor(farewell, [tr.anchor, *leaving], k, pred, lam))
+            if old[0] is not None and lam_o > 0:
+                g.add(graph.build_depth_transfer(old[0], tr.key, old[1], tr.anchor, leaving[old[1]].uv,
+                                                 lam_o, old[3], self.est.cfg))
 
     def _retire_key(self, tr: Track, g: gtsam.NonlinearFactorGraph, stamps: dict,
                     removals: list[int]) -> None:
@@ -155,18 +184,26 @@ class LandmarkManager:
 
     def _add_factor(self, tr: Track, g: gtsam.NonlinearFactorGraph, k: int, pred: gtsam.NavState,
                     lam: float) -> None:
-        frames = tr.frames()
+        """The track's factor over all its observations (its smoother index is recorded)."""
+        self._pending.append((tr, int(g.size())))
+        g.add(self._factor(tr, tr.frames(), k, pred, lam))
+
+    def _factor(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
+                lam: float) -> gtsam.NonlinearFactor:
+        """Landmark (or, with cam1 observations, stereo) factor of ``tr`` over ``frames``
+        (anchor first) at inverse depth ``lam``."""
         cam = self.est.cam
         vel = rvel = None
         if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
             vel, rvel = self._predicted_velocities(tr, frames, k, pred, lam)
-        self._pending.append((tr, int(g.size())))
-        if self.est.C_stereo is not None and tr.stereo_frames():
-            g.add(graph.build_stereo_factor(tr, self.est.C_stereo, self.est.cfg, self.est.sigma,
-                                            cam.line_time_s, vel, rvel))
-        else:
-            g.add(graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma,
-                                              cam.line_time_s, vel))
+        vals = self.est.values
+        at = graph.LinPoint(lam, vals.atPose3(graph.EXTRINSIC), {f: self._pose(f, k, pred) for f in frames},
+                            float(vals.atVector(graph.TD)[0]))
+        if self.est.C_stereo is not None and any(tr.obs[f].right_uv is not None for f in frames):
+            return graph.build_stereo_factor(tr, self.est.C_stereo, self.est.cfg, self.est.sigma,
+                                             cam.line_time_s, vel, rvel, at, frames)
+        return graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma, cam.line_time_s,
+                                           vel, at)
 
     def _predicted_velocities(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
                               lam: float) -> tuple[np.ndarray, np.ndarray | None]:
@@ -224,7 +261,10 @@ class LandmarkManager:
     def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
         """Per window keyframe f: ``R_w_c`` (K, 3, 3), ``t_w_c`` (K, 3), and the camera's
         angular / linear velocity in the camera frame (K, 3) from the bias-corrected
-        gyro and the estimated velocity; ``pos`` maps f to its row. Cached per update."""
+        gyro and the estimated velocity, zero at keyframes flagged still (their images
+        carry no timing information; on the ground with motors running the gyro's vibration
+        read as motion let td wander 0 -> 7.8 ms on MH_04 before take-off); ``pos`` maps f to
+        its row. Cached per update."""
         if self._motion_cache:
             return self._motion_cache["table"]
         vals, est = self.est.values, self.est
