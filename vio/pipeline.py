@@ -97,15 +97,16 @@ class Pipeline:
             return imu, 0.0
         return imu, (imu.t_ns[-1] - imu.t_ns[0]) * 1e-9
 
-    def _flow_px(self, a: FeatureFrame | None, b: FeatureFrame | None) -> tuple[float, int]:
-        """Mean displacement (px) of features common to two frames, and their count."""
+    def _flow_px(self, a: FeatureFrame | None, b: FeatureFrame | None,
+                 median: bool = False) -> tuple[float, int]:
+        """Mean (or median) displacement (px) of features common to two frames, and their count."""
         if a is None or b is None:
             return 0.0, 0
         common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
         if common.size == 0:
             return 0.0, 0
         d = np.linalg.norm(a.uv[ia] - b.uv[ib], axis=1) * self.cam.intrinsics[0]
-        return float(d.mean()), int(common.size)
+        return float(np.median(d) if median else d.mean()), int(common.size)
 
     def _still(self) -> bool:
         ic = self.cfg.backend.init
@@ -115,7 +116,7 @@ class Pipeline:
         if not imu_stillness(imu, ic).still:
             return False
         first, last = self._recent[0].features, self._recent[-1].features
-        flow, n = self._flow_px(first, last)
+        flow, n = self._flow_px(first, last, median=True)
         return n == 0 or flow < ic.max_still_flow_px
 
     # ------------------------------------------------------------ main loop

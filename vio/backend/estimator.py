@@ -100,6 +100,7 @@ class Estimator:
         self.values = gtsam.Values()
         self.k = -1
         self.kf_t: dict[int, int] = {}
+        self.still_kf: set[int] = set()   # keyframes the pipeline flagged still (no td term)
         self.rates = KeyframeRates()
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
@@ -135,6 +136,7 @@ class Estimator:
         self.smoother = self._new_smoother()
         self.k = k
         self.kf_t = {k: state.t_ns}
+        self.still_kf = set()
         self.rates.reset_to(k)
         g = graph.state_priors(k, state, self.cfg.init, pose_sigmas)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
@@ -186,6 +188,7 @@ class Estimator:
         g.add(graph.imu_factor(k0, k1, self.pim))
         if still:
             g.add(graph.zero_velocity(k1, self.cfg.init.zupt_sigma))
+            self.still_kf.add(k1)
         v.insert(X(k1), pred.pose())
         v.insert(V(k1), pred.velocity())
         v.insert(B(k1), b0)
@@ -209,6 +212,7 @@ class Estimator:
             recovered = True
         for k in leaving:
             self.kf_t.pop(k, None)
+            self.still_kf.discard(k)
             self.rates.drop(k)
         n_removed = 0 if recovered else self._remove_outliers()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])

@@ -279,6 +279,8 @@ class LandmarkManager:
             b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
             w_b = (est.rates.rate(f, td) if f in est.rates else np.zeros(3)) - b.gyroscope()
             v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
+            if f in est.still_kf:
+                w_b, v_b = np.zeros(3), np.zeros(3)
             T_w_c = T_w_b.compose(T_b_c)
             R.append(T_w_c.rotation().matrix()), t.append(T_w_c.translation())
             w.append(R_c_b @ w_b), v.append(R_c_b @ v_b)
