@@ -95,6 +95,23 @@ def test_gravity_aligned_rotation_has_zero_yaw():
         assert abs(np.arctan2(M[1, 0], M[0, 0])) < 1e-9 or abs(M[2, 2] + 1) < 1e-9
 
 
+def test_initial_pose_prior_pins_world_yaw_not_a_body_axis():
+    """EuRoC's IMU x axis points up: the prior's tight sigma must act on the rotation
+    about world z (yaw), and the loose ones on world x/y (tilt), whatever the body."""
+    from vio.backend import graph
+    from vio.backend.init import InitialState
+    cfg = InitConfig()
+    R = gravity_aligned_rotation(np.array([9.8, 0.3, -0.5]))     # body x ~ up
+    state = InitialState(0, gtsam.Pose3(R, np.zeros(3)), np.zeros(3),
+                         gtsam.imuBias.ConstantBias(), "static")
+    prior = graph.state_priors(0, state, cfg).at(0)
+    for axis, sigma in ((2, cfg.prior_yaw_sigma), (0, cfg.prior_rp_sigma), (1, cfg.prior_rp_sigma)):
+        w = np.zeros(3)
+        w[axis] = 1e-4                                           # world-frame rotation
+        v = gtsam.Values()
+        v.insert(graph.X(0), gtsam.Pose3(gtsam.Rot3.Expmap(w).compose(R), np.zeros(3)))
+        assert prior.error(v) == pytest.approx(0.5 * (1e-4 / sigma) ** 2, rel=1e-3)
+
 @pytest.mark.slow
 def test_dynamic_initialization_on_moving_start(sim_tracks):
     res = run_dataset(sim_tracks, PipelineConfig())

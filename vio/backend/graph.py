@@ -37,14 +37,24 @@ def state_priors(k: int, state: InitialState, cfg: InitConfig,
                  pose_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
     """Priors on the first keyframe (or on the restart keyframe after recovery).
 
-    Rotation sigmas are in the body frame ([roll, pitch, yaw]-like for a level body),
-    then position (m); velocity (m/s); bias [accel m/s^2, gyro rad/s].
+    Default pose prior: roll/pitch ``prior_rp_sigma`` and yaw ``prior_yaw_sigma`` (rad)
+    about the *world* axes, position ``prior_pos_sigma`` (m); the covariance is rotated
+    into the body-frame tangent of ``Pose3`` (``R^T S R``). A body-frame diagonal would
+    pin the wrong axis: EuRoC's IMU x axis points up, so body "yaw" is a tilt, and the
+    start's tilt error (accel bias not yet separable from gravity) stayed locked in.
+    ``pose_sigmas`` (6,): isotropic-per-block body-frame sigmas instead (recovery).
+    Velocity (m/s) and bias [accel m/s^2, gyro rad/s] priors are diagonal.
     """
     g = gtsam.NonlinearFactorGraph()
     if pose_sigmas is None:
-        pose_sigmas = np.array([cfg.prior_rp_sigma, cfg.prior_rp_sigma, cfg.prior_yaw_sigma,
-                                cfg.prior_pos_sigma, cfg.prior_pos_sigma, cfg.prior_pos_sigma])
-    g.add(gtsam.PriorFactorPose3(X(k), state.T_w_b, gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)))
+        R = state.T_w_b.rotation().matrix()
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = R.T @ np.diag([cfg.prior_rp_sigma, cfg.prior_rp_sigma, cfg.prior_yaw_sigma]) ** 2 @ R
+        cov[3:, 3:] = np.eye(3) * cfg.prior_pos_sigma ** 2
+        pose_noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+    else:
+        pose_noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)
+    g.add(gtsam.PriorFactorPose3(X(k), state.T_w_b, pose_noise))
     g.add(gtsam.PriorFactorVector(V(k), state.v_w,
                                   gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_vel_sigma)))
     bias_sigmas = np.r_[np.full(3, cfg.prior_accel_bias_sigma), np.full(3, cfg.prior_gyro_bias_sigma)]
