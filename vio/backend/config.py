@@ -107,7 +107,7 @@ class VisionConfig:
     not counted once per target observation. It is the right model for white pixel noise:
     on the generated excerpts geometric-mean ATE 0.110% -> 0.096%; on the real V1_01 KLT
     tracks, whose errors are correlated along a track, it costs accuracy (0.024 -> 0.031 m):
-    set it false for real KLT input.
+    both within the 0.04-m target; false suits real KLT input better.
     ``marginalize_reanchored``: when a live landmark's anchor leaves the window, its
     observations in the leaving keyframes become a farewell factor of its new key and a
     depth-transfer factor (relative depth sigma ``reanchor_sigma``) ties the old key to the
