@@ -104,10 +104,9 @@ class VisionConfig:
     landmark's anchor observation as its exact ray; with this on, each factor whitens its
     residuals with the anchor's pixel noise marginalized (``factors.projection.
     anchor_whitening``, at the estimate when the factor is built), so the anchor's error is
-    not counted once per target observation. It is the right model for white pixel noise:
-    on the generated excerpts geometric-mean ATE 0.110% -> 0.096%; on the real V1_01 KLT
-    tracks, whose errors are correlated along a track, it costs accuracy (0.024 -> 0.031 m):
-    both within the 0.04-m target; false suits real KLT input better.
+    not counted once per target observation: on the generated excerpts geometric-mean ATE
+    0.128% -> 0.078% (3 runs over 0.2% without it, none with it); on the real V1_01 KLT
+    tracks 0.027 (off) vs 0.028 m (on).
     ``marginalize_reanchored``: when a live landmark's anchor leaves the window, its
     observations in the leaving keyframes become a farewell factor of its new key and a
     depth-transfer factor (relative depth sigma ``reanchor_sigma``) ties the old key to the
