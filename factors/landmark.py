@@ -39,8 +39,9 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, AnchorWhitening, Projected,
-                                check_model, project_batch, tangent_basis)
+from factors.anchor_noise import AnchorWhitening
+from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, check_model,
+                                project_batch, tangent_basis)
 from factors.robust import RobustKernel, block_sqrt_weights, reweight_blocks
 from factors.td_projection import td_project_batch
 
@@ -126,7 +127,7 @@ def _project(args: list, track: LandmarkTrack, model: str, use_td: bool) -> Proj
 def landmark_anchor_jacobian(args: list, track: LandmarkTrack, model: str = "pinhole",
                              use_td: bool = False) -> np.ndarray:
     """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`landmark_residual` order), for
-    :func:`factors.projection.anchor_whitening`."""
+    :func:`factors.anchor_noise.anchor_whitening`."""
     return _project(args, track, model, use_td).uvi.reshape(2 * track.n, 2)
 
 
@@ -158,7 +159,7 @@ def landmark_residual(args: list, track: LandmarkTrack, model: str = "pinhole",
     ``sigma`` (normalized units) whitens block norms for the robust weights; ``weights``
     (n,) overrides the IRLS weights ``w_k`` (not their square roots); ``whiten``:
     constant, applied after the robust weights (the anchor-noise whitening of
-    :func:`factors.projection.anchor_whitening`).
+    :func:`factors.anchor_noise.anchor_whitening`).
     """
     r, J = _evaluate(args, track, model, sigma, robust, use_td, weights, whiten)
     return r, [J[:, a:b] for a, b in _block_cols(track.n, use_td)]
@@ -179,7 +180,7 @@ def landmark_factor(track: LandmarkTrack, lam_key: int, extrinsic_key: int, sigm
     """``gtsam.CustomFactor`` over :func:`landmark_keys` with isotropic noise ``sigma``.
 
     ``td_key`` selects the td variant. ``whiten``: constant whitening of the
-    stacked residual (anchor noise, :func:`factors.projection.anchor_whitening`).
+    stacked residual (anchor noise, :func:`factors.anchor_noise.anchor_whitening`).
     Construction is cheap (no evaluation): rebuild it when the landmark gains an
     observation or is re-anchored.
     """

@@ -32,8 +32,8 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.projection import (COL_TJ, AnchorWhitening, Projected, check_model, project_batch,
-                                tangent_basis)
+from factors.anchor_noise import AnchorWhitening
+from factors.projection import COL_TJ, Projected, check_model, project_batch, tangent_basis
 from factors.robust import RobustKernel, reweight_blocks
 from factors.td_projection import td_project_batch
 
@@ -122,7 +122,7 @@ def _project(args: list, track: StereoTrack, model: str, use_td: bool) -> Projec
 def stereo_anchor_jacobian(args: list, track: StereoTrack, model: str = "pinhole",
                            use_td: bool = False) -> np.ndarray:
     """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`stereo_residual` order), for
-    :func:`factors.projection.anchor_whitening`."""
+    :func:`factors.anchor_noise.anchor_whitening`."""
     return _project(args, track, model, use_td).uvi.reshape(2 * track.n, 2)
 
 
@@ -132,7 +132,7 @@ def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigm
     """Stacked residual (2n,) and Jacobian (2n, 13 + 6k [+1]) in :func:`stereo_keys` order.
 
     ``args``: ``[lambda (1,), T_b_c0, T_anchor, T_m1..T_mk]`` (+ ``td (1,)``); ``whiten``:
-    constant whitening applied last (anchor noise, :func:`factors.projection.anchor_whitening`).
+    constant whitening applied last (anchor noise, :func:`factors.anchor_noise.anchor_whitening`).
     """
     n, k = track.n, len(track.keys)
     p = _project(args, track, model, use_td)

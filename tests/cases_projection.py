@@ -15,7 +15,8 @@ import numpy as np
 
 from factors.landmark import (landmark_anchor_jacobian, landmark_factor, landmark_residual,
                               landmark_weights, make_track)
-from factors.projection import anchor_whitening, projection_factor, projection_residual
+from factors.anchor_noise import anchor_whitening
+from factors.projection import projection_factor, projection_residual
 from factors.robust import RobustKernel, robust_noise
 from factors.td_projection import TdObservation, td_projection_factor, td_projection_residual
 from jacobian_case import JacobianCase

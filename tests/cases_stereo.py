@@ -9,7 +9,7 @@ import numpy as np
 
 from cases_projection import random_pose
 from factors.robust import RobustKernel
-from factors.projection import anchor_whitening
+from factors.anchor_noise import anchor_whitening
 from factors.stereo import make_stereo_track, stereo_anchor_jacobian, stereo_factor, stereo_residual
 from jacobian_case import JacobianCase
 

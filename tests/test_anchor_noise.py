@@ -2,7 +2,7 @@
 
 With isotropic pixel noise on every observation of a landmark, the anchor one included,
 the stacked residual at the true state has covariance ``sigma^2 (I + G G^T)``; after
-``factors.projection.anchor_whitening`` it is ``sigma^2 I`` (Monte Carlo here), so each
+``factors.anchor_noise.anchor_whitening`` it is ``sigma^2 I`` (Monte Carlo here), so each
 observation weighs what it measures instead of the anchor's error being counted once per
 target."""
 
@@ -12,7 +12,7 @@ import numpy as np
 
 from cases_projection import scene
 from factors.landmark import landmark_anchor_jacobian, landmark_residual, make_track
-from factors.projection import anchor_whitening
+from factors.anchor_noise import anchor_whitening
 
 
 def test_whitened_residuals_have_unit_covariance():

@@ -102,7 +102,7 @@ class VisionConfig:
     restarted from the front end's next observation; an id dropped ``max_rejections``
     times is ignored for good. ``anchor_noise``: the inverse-depth factors take a
     landmark's anchor observation as its exact ray; with this on, each factor whitens its
-    residuals with the anchor's pixel noise marginalized (``factors.projection.
+    residuals with the anchor's pixel noise marginalized (``factors.anchor_noise.
     anchor_whitening``, at the estimate when the factor is built), so the anchor's error is
     not counted once per target observation: on the generated excerpts geometric-mean ATE
     0.128% -> 0.078% (3 runs over 0.2% without it, none with it); on the real V1_01 KLT
