@@ -14,7 +14,7 @@ import gtsam
 import numpy as np
 
 from factors.landmark import landmark_anchor_jacobian, landmark_factor, make_track
-from factors.projection import anchor_whitening
+from factors.anchor_noise import AnchorWhitening, anchor_whitening
 from factors.reanchor import depth_transfer_factor
 from factors.robust import RobustKernel
 from factors.stereo import make_stereo_track, stereo_anchor_jacobian, stereo_factor
@@ -98,15 +98,15 @@ class LinPoint:
     td: float
 
 
-def _whitening(kind: str, track, at: LinPoint | None, body_poses: list[gtsam.Pose3],
-               cfg: BackendConfig, td_key: int | None) -> np.ndarray | None:
-    """W of :func:`factors.projection.anchor_whitening` for a landmark or stereo track at
-    ``at`` (``body_poses``: anchor first, then the track's other body keys in order)."""
+def _whitening(anchor_jacobian, track, at: LinPoint | None, body_poses: list[gtsam.Pose3],
+               cfg: BackendConfig, td_key: int | None) -> AnchorWhitening | None:
+    """W of :func:`factors.anchor_noise.anchor_whitening` for a landmark or stereo track at
+    ``at`` (``body_poses``: anchor first, then the track's other body keys in order);
+    ``anchor_jacobian``: ``landmark_anchor_jacobian`` or ``stereo_anchor_jacobian``."""
     if at is None or not cfg.vision.anchor_noise:
         return None
     args = [np.array([at.lam]), at.T_b_c, *body_poses] + ([np.array([at.td])] if td_key is not None else [])
-    jac = landmark_anchor_jacobian if kind == "mono" else stereo_anchor_jacobian
-    return anchor_whitening(jac(args, track, cfg.vision.model, td_key is not None))
+    return anchor_whitening(anchor_jacobian(args, track, cfg.vision.model, td_key is not None))
 
 
 def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, sigma: float,
@@ -127,7 +127,7 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
                     np.array([o.uv for o in obs[1:]]), anchor_vel=vel[0], vel=vel[1:],
                     anchor_offset=off[0], offset=off[1:])
     kernel, td_key = _vision_options(cfg)
-    W = _whitening("mono", lm, at, [at.poses[f] for f in frames] if at else [], cfg, td_key)
+    W = _whitening(landmark_anchor_jacobian, lm, at, [at.poses[f] for f in frames] if at else [], cfg, td_key)
     return landmark_factor(lm, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key, whiten=W)
 
 
@@ -223,8 +223,8 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3, cfg: BackendConfig, sigma:
                            right=[False] * (len(frames) - 1) + [True] * len(st_i))
     kernel, td_key = _vision_options(cfg)
     by_key = {X(f): at.poses[f] for f in frames} if at else {}
-    W = _whitening("stereo", st, at, [by_key[k] for k in (st.anchor_key, *st.keys)] if at else [], cfg,
-                   td_key)
+    bodies = [by_key[k] for k in (st.anchor_key, *st.keys)] if at else []
+    W = _whitening(stereo_anchor_jacobian, st, at, bodies, cfg, td_key)
     return stereo_factor(st, track.key, EXTRINSIC, sigma, cfg.vision.model, kernel, td_key, whiten=W)
 
 

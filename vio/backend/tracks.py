@@ -130,7 +130,7 @@ class LandmarkManager:
         vals = self.est.values
         p_w = self._point_w(tr)
         lam_o = float(vals.atVector(tr.key)[0]) if tr.key is not None and vals.exists(tr.key) else 0.0
-        old = (tr.key, tr.anchor, lam_o, tr.td_shift.get(tr.anchor))
+        old_key, old_anchor, old_shift = tr.key, tr.anchor, tr.td_shift.get(tr.anchor)
         leaving = {f: tr.obs.pop(f) for f in sorted(tr.obs) if f in leave}
         self._retire_key(tr, g, stamps, removals)
         if p_w is None or not tr.obs:
@@ -144,9 +144,9 @@ class LandmarkManager:
             anchor = dataclasses.replace(tr.obs[tr.anchor], right_uv=None, right_velocity=None)
             farewell = Track(tr.lid, {tr.anchor: anchor, **leaving}, tr.key, tr.anchor)
             g.add(self._factor(farewell, [tr.anchor, *leaving], k, pred, lam))
-            if old[0] is not None and lam_o > 0:
-                g.add(graph.build_depth_transfer(old[0], tr.key, old[1], tr.anchor, leaving[old[1]].uv,
-                                                 lam_o, old[3], self.est.cfg))
+            if old_key is not None and lam_o > 0:
+                g.add(graph.build_depth_transfer(old_key, tr.key, old_anchor, tr.anchor,
+                                                 leaving[old_anchor].uv, lam_o, old_shift, self.est.cfg))
 
     def _retire_key(self, tr: Track, g: gtsam.NonlinearFactorGraph, stamps: dict,
                     removals: list[int]) -> None:
@@ -197,8 +197,9 @@ class LandmarkManager:
         if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
             vel, rvel = self._predicted_velocities(tr, frames, k, pred, lam)
         vals = self.est.values
-        at = graph.LinPoint(lam, vals.atPose3(graph.EXTRINSIC), {f: self._pose(f, k, pred) for f in frames},
-                            float(vals.atVector(graph.TD)[0]))
+        at = (graph.LinPoint(lam, vals.atPose3(graph.EXTRINSIC), {f: self._pose(f, k, pred) for f in frames},
+                             float(vals.atVector(graph.TD)[0]))
+              if self.est.cfg.vision.anchor_noise else None)
         if self.est.C_stereo is not None and any(tr.obs[f].right_uv is not None for f in frames):
             return graph.build_stereo_factor(tr, self.est.C_stereo, self.est.cfg, self.est.sigma,
                                              cam.line_time_s, vel, rvel, at, frames)
