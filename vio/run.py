@@ -15,7 +15,7 @@ import numpy as np
 
 from vio.config import from_dict, read_yaml
 from vio.conventions import quat_wxyz_from_rot
-from vio.io.euroc import EurocDataset, LoadOptions, load_euroc
+from vio.io.euroc import EurocDataset
 from vio.pipeline import FrameOutput, Pipeline, PipelineConfig
 from vio.sync import FramePacket, packets
 from vio.trajectory import write_tum
@@ -212,9 +212,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     elif args.dataset is None:
         raise ValueError("give a DATASET folder or --demo")
     else:
-        data = load_euroc(args.dataset, LoadOptions(trim_to_imu=args.trim))
+        from vio.io.load import load_dataset
+        data = load_dataset(args.dataset, args.trim, getattr(args, "topics", None), getattr(args, "calib", None),
+                            getattr(args, "imu_calib", None), getattr(args, "groundtruth", None))
     mode = resolve_mode(data, args.mode)
-    cfg = load_config(args.config, args.td, mode)
+    cfg = load_config(args.config, args.td if args.td is not None else data.td_s, mode)
     sinks = []
     if args.rerun or args.rrd:
         from vio.viz import RerunSink

@@ -52,6 +52,7 @@ class EurocDataset:
     groundtruth: GroundTruth | None
     features: list[FeatureFrame] | None
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    td_s: float | None = None   # initial camera-IMU offset from the calibration (Kalibr), if any
 
     @property
     def kind(self) -> str:
@@ -92,6 +93,8 @@ def load_euroc(root: str | Path, options: LoadOptions = LoadOptions()) -> EurocD
         keep = {int(t) for t in cam0.t_ns}
         features = [f for f in features if f.t_ns in keep]  # frames trimmed to the IMU span
     gt = read_groundtruth(mav0 / "state_groundtruth_estimate0")
+    if gt is None:   # TUM-VI: motion-capture poses of the IMU
+        gt = read_groundtruth(mav0 / "mocap0")
     for w in warnings:
         log.warning(w)
     return EurocDataset(mav0.parent if mav0.name == "mav0" else mav0, imu, imu_calib, cam0,
@@ -182,9 +185,10 @@ def _read_image_list(csv: Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     return t_ns, names, np.array(nos, dtype=np.int64)
 
 
-def read_groundtruth(gt_dir: Path) -> GroundTruth | None:
-    """EuRoC ``data.csv`` (p, q_wxyz[, v, bg, ba]) or TUM ``groundtruth_tum.txt``; None if absent."""
-    csv, tum = gt_dir / "data.csv", gt_dir / "groundtruth_tum.txt"
+def read_groundtruth(gt_dir: Path, name: str = "data.csv") -> GroundTruth | None:
+    """EuRoC ``data.csv`` (p, q_wxyz[, v, bg, ba]; TUM-VI ``mocap0/data.csv`` is the
+    7-column form) or TUM ``groundtruth_tum.txt``; None if absent."""
+    csv, tum = gt_dir / name, gt_dir / "groundtruth_tum.txt"
     if csv.is_file():
         table = read_numeric(csv, (7, 16))
         check_increasing(table)
@@ -219,7 +223,10 @@ def _normalized_quats(q: np.ndarray, table) -> np.ndarray:
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable."""
+    """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable. Accepts
+    any reference with a ``read_gray()`` method as well (``vio.io.bag.BagFrame``)."""
+    if hasattr(path, "read_gray"):
+        return path.read_gray()
     path = Path(path)
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
     if img is None:
