@@ -197,10 +197,14 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
         t = last.T_b_c.translation()
         lines.append(f"extrinsic t_b_c {np.round(t, 4)} m")
     if data.groundtruth is not None and len(res.outputs) > 3:
-        from vio.evaluation import evaluate
-        e = evaluate(*res.arrays(), data.groundtruth)
-        lines.append(f"ATE RMSE        {e.ate_rmse:.4f} m (SE3-aligned, {e.n_matched} poses, "
-                     f"path {e.path_length:.1f} m)")
+        from vio.evaluation import evaluate, overlap_problem
+        problem = overlap_problem(res.arrays()[0], data.groundtruth)
+        if problem is not None:
+            lines.append(f"ATE             not evaluated: {problem}")
+        else:
+            e = evaluate(*res.arrays(), data.groundtruth)
+            lines.append(f"ATE RMSE        {e.ate_rmse:.4f} m (SE3-aligned, {e.n_matched} poses, "
+                         f"path {e.path_length:.1f} m)")
     return lines
 
 
