@@ -61,8 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
     tracks_cli.add_parser(sub)
     from vio.nav import cli as nav_cli
     nav_cli.add_parsers(sub)
+    from vio import batch
     from vio.io import bag_write
     bag_write.add_parser(sub)
+    batch.add_parser(sub)
     return parser
 
 
@@ -82,8 +84,10 @@ def _handlers() -> dict:
     from vio.nav import cli as nav_cli
     from vio.sim import cli as sim_cli
     from vio.sim import tracks_cli
+    from vio import batch
     from vio.io import bag_write
-    return {"sim": sim_cli.run, "tracks": tracks_cli.run, "plan": nav_cli.run_plan, "convert": bag_write.run}
+    return {"sim": sim_cli.run, "tracks": tracks_cli.run, "plan": nav_cli.run_plan, "convert": bag_write.run,
+            "batch": batch.run}
 
 
 def main(argv: list[str] | None = None) -> int:
