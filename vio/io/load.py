@@ -38,28 +38,31 @@ def load_dataset(path: str | Path, trim: bool = False, topics: Sequence[str] | N
             raise DataError(path, "--topics applies to bags only")
         if path.is_file():
             raise DataError(path, "not a dataset: expected an ASL folder, a .bag file or a ROS 2 bag folder")
-        data = with_calibration(load_euroc(path, LoadOptions(trim_to_imu=trim)), calib, imu_calib)
+        data = load_folder(path, trim, calib, imu_calib)
     if groundtruth is not None:
         data = dataclasses.replace(data, groundtruth=load_groundtruth(groundtruth))
     return data
 
 
-def with_calibration(data: EurocDataset, calib: str | Path | None, imu_calib: str | Path | None) -> EurocDataset:
-    """The dataset with its cameras (and td) and/or IMU noise taken from Kalibr files.
-    A camera absent from the camchain is dropped (with a warning)."""
-    if calib is not None:
-        kc = read_camchain(calib)
-        cam0 = dataclasses.replace(data.cam0, calib=kc.cams[0])
-        cam1 = data.cam1
-        if cam1 is not None and len(kc.cams) > 1:
-            cam1 = dataclasses.replace(cam1, calib=kc.cams[1])
-        elif cam1 is not None:
-            log.warning("%s: no cam1 in %s: the second camera is not used", data.root, calib)
-            cam1 = None
-        data = dataclasses.replace(data, cam0=cam0, cam1=cam1, td_s=kc.td_s)
-    if imu_calib is not None:
-        data = dataclasses.replace(data, imu_calib=read_kalibr_imu(imu_calib).calib)
-    return data
+def tumvi_calibration(path: str | Path) -> tuple[Path | None, Path | None]:
+    """TUM-VI folders carry Kalibr files: ``dso/camchain.yaml`` and ``dso/imu_config.yaml``
+    (each None when absent)."""
+    mav0 = find_mav0(path)
+    root = mav0.parent if mav0.name == "mav0" else mav0
+    found = [root / "dso" / n for n in ("camchain.yaml", "imu_config.yaml")]
+    return tuple(p if p.is_file() else None for p in found)
+
+
+def load_folder(path: str | Path, trim: bool = False, calib: str | Path | None = None,
+                imu_calib: str | Path | None = None) -> EurocDataset:
+    """An ASL folder; Kalibr files (given, or TUM-VI's ``dso/`` ones) replace sensor.yaml,
+    and the camchain's ``timeshift_cam_imu`` is the initial td."""
+    dso_cams, dso_imu = tumvi_calibration(path)
+    calib, imu_calib = calib or dso_cams, imu_calib or dso_imu
+    kc = read_camchain(calib) if calib is not None else None
+    ki = read_kalibr_imu(imu_calib).calib if imu_calib is not None else None
+    return load_euroc(path, LoadOptions(trim_to_imu=trim), kc.cams if kc else None, ki,
+                      kc.td_s if kc else None)
 
 
 def load_groundtruth(path: str | Path) -> GroundTruth:
