@@ -6,7 +6,6 @@ from any supported file.
 from __future__ import annotations
 
 import dataclasses
-import logging
 from pathlib import Path
 from typing import Sequence
 
@@ -15,8 +14,6 @@ from vio.io.bag import is_bag, load_bag
 from vio.io.euroc import EurocDataset, LoadOptions, find_mav0, load_euroc, read_groundtruth, read_tum
 from vio.io.kalibr import read_camchain, read_kalibr_imu
 from vio.io.types import GroundTruth
-
-log = logging.getLogger(__name__)
 
 
 def load_dataset(path: str | Path, trim: bool = False, topics: Sequence[str] | None = None,
