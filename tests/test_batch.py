@@ -45,6 +45,7 @@ def test_batch_matrix_on_local_ray(tmp_path, ray_local, capsys):
         assert all(key in r for r in recs)
     ok = recs[:2]
     assert all(r["mode"] == "features" and 0 < r["ate_rmse_m"] < 0.05 and r["ms_per_frame"] > 0 for r in ok)
+    assert all(0 <= r["init_time_s"] < 2.5 and r["restarts"] == 0 for r in ok)
     assert ok[0]["config"] == "default" and ok[1]["config"].endswith("short_lag.yaml")
     assert all(os.path.isfile(r["trajectory"]) and os.path.isfile(r["plot"]) for r in ok)
     assert "missing_folder: dataset folder not found" in recs[2]["error"]

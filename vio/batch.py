@@ -113,8 +113,18 @@ def run_job(job: Job) -> dict:
     return rec
 
 
+def _export_package_path() -> None:
+    """Put the folders holding the imported ``vio`` and ``factors`` packages on PYTHONPATH,
+    so subprocesses (the front-end worker, ``vio.overlap``) import the same code."""
+    import factors
+    roots = [str(Path(f).resolve().parents[1]) for f in (factors.__file__, __file__)]
+    old = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    os.environ["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(roots + old))
+
+
 def _run(job: Job) -> dict:
     from vio.io.load import load_dataset
+    _export_package_path()
     from vio.run import load_config, resolve_mode, run_dataset
     from vio.trajectory import write_tum
     d = job.dataset
@@ -133,10 +143,8 @@ def _run(job: Job) -> dict:
     traj = runs / f"{job.id}.tum"
     write_tum(traj, t, [o.T_w_b for o in res.outputs])
     ms = np.array([o.seconds for o in res.outputs]) * 1e3
-    stamps = data.cam0.t_ns
     out.update(trajectory=str(traj), td_ms=res.outputs[-1].td_s * 1e3, ms_per_frame=float(ms.mean()),
-               realtime_factor=res.data_s / res.wall_s if res.wall_s > 0 else None,
-               init_time_s=float(t[0] - stamps[0] - int(cfg.td_s * 1e9)) * 1e-9)
+               realtime_factor=res.data_s / res.wall_s if res.wall_s > 0 else None, init_time_s=res.init_s)
     out.update(_evaluate(t, p, q, data.groundtruth, runs / f"{job.id}.png", mode))
     return out
 
@@ -173,8 +181,11 @@ def _init_ray(workers: int | None, address: str | None):
     import ray
     if ray.is_initialized():
         return ray
-    if address:
-        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
+    if address:   # ship this very code to the cluster's workers
+        import factors
+        mods = [str(Path(f).resolve().parent) for f in (factors.__file__, __file__)]
+        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False,
+                 runtime_env={"py_modules": mods, "env_vars": {"OMP_NUM_THREADS": "1"}})
     else:
         # local workers import this very package (an editable install may point elsewhere)
         pkg_root = str(Path(__file__).resolve().parents[1])

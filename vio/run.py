@@ -33,6 +33,7 @@ class RunResult:
     wall_s: float = 0.0
     data_s: float = 0.0
     recoveries: int = 0
+    init_s: float | None = None   # data time from the first packet to the one that initialized
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
 
@@ -158,11 +159,15 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         from tqdm import tqdm
         bar = tqdm(total=len(stamps), unit="frame", leave=False)
     t0 = time.perf_counter()
+    t_first = None
     for pkt in it:
         res.frames_in += 1
+        t_first = pkt.t_ns if t_first is None else t_first
         if stage is not None:
             pkt = stage(pkt)
         outs = pipe.process(pkt)
+        if outs and res.init_s is None:
+            res.init_s = (pkt.t_ns - t_first) * 1e-9
         res.outputs.extend(outs)
         for out in outs:
             if out.landmark_ids is not None:
