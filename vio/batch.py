@@ -184,8 +184,12 @@ def _init_ray(workers: int | None, address: str | None):
     if address:   # ship this very code to the cluster's workers
         import factors
         mods = [str(Path(f).resolve().parent) for f in (factors.__file__, __file__)]
-        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False,
-                 runtime_env={"py_modules": mods, "env_vars": {"OMP_NUM_THREADS": "1"}})
+        try:
+            ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False,
+                     runtime_env={"py_modules": mods, "env_vars": {"OMP_NUM_THREADS": "1"}})
+        except (ConnectionError, RuntimeError) as exc:
+            raise ValueError(f"--address {address}: cannot connect to the Ray cluster "
+                             f"({str(exc).strip().splitlines()[0]})") from None
     else:
         # local workers import this very package (an editable install may point elsewhere)
         pkg_root = str(Path(__file__).resolve().parents[1])
