@@ -194,7 +194,7 @@ def _init_ray(workers: int | None, address: str | None):
         # local workers import this very package (an editable install may point elsewhere)
         pkg_root = str(Path(__file__).resolve().parents[1])
         path = os.pathsep.join([pkg_root] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
-        ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
+        ray.init(address="local", num_cpus=workers or os.cpu_count() or 1, include_dashboard=False,
                  logging_level=logging.WARNING, log_to_driver=False,
                  runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}})
     return ray
