@@ -159,3 +159,19 @@ def test_load_bag_needs_imu_before_images(tmp_path, mh01):
     convert(mh01.folder, tmp_path / "b.bag", 10, imu_margin_s=-0.06)   # IMU starts after frame 1
     d = load_bag(tmp_path / "b.bag", [data.cam0.calib], data.imu_calib, cam_hints=("/cam0/image_raw",))
     assert len(d.cam0) < 10 and any("outside the IMU span" in w for w in d.warnings)
+
+
+def test_convert_cli_and_topics_flag(tmp_path, capsys):
+    """``vio convert`` writes a bag + Kalibr files; ``--topics`` picks a mono run from it."""
+    folder = shared("euroc_V1_01_static_stereo")
+    assert main(["convert", str(folder), str(tmp_path / "s.bag"), "--max-frames", "5", "--kalibr", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "/cam0/image_raw    5 messages" in out and "/cam1/image_raw    5 messages" in out
+    assert main(["convert", str(folder), str(tmp_path / "s.bag")]) == 2
+    assert "output exists" in capsys.readouterr().err
+    data = load_dataset(tmp_path / "s.bag", topics=["/cam1/image_raw", "/imu0"], calib=tmp_path / "camchain.yaml",
+                        imu_calib=tmp_path / "imu.yaml")
+    assert data.kind == "mono" and len(data.cam0) == 5
+    ref = load_euroc(folder)
+    assert data.cam0.calib.intrinsics == ref.cam1.calib.intrinsics      # matched by rostopic
+    np.testing.assert_array_equal(read_image(data.cam0.files[4]), read_image(ref.cam1.files[4]))

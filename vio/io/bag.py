@@ -113,8 +113,8 @@ def choose_topics(available: dict[str, str], path: Path, wanted: Sequence[str] |
         raise DataError(path, f"{what} (choose with --topics); {listing}")
     images = sorted(t for t, m in available.items() if m in IMAGE_TYPES)
     hinted = [h for h in cam_hints if h]
-    if hinted and all(h in images for h in hinted):
-        return BagTopics(imus[0], tuple(hinted[:max_cams]))
+    if hinted and hinted[0] in images:       # the camchain's cameras present in the bag, cam0 first
+        return BagTopics(imus[0], tuple(h for h in hinted if h in images)[:max_cams])
     if not images:
         raise DataError(path, f"no sensor_msgs/Image or CompressedImage topic; {listing}")
     if len(images) > max_cams:
@@ -327,21 +327,25 @@ def load_bag(path: str | Path, cams: Sequence[CameraCalib], imu_calib: ImuCalib,
              imu_hint: str | None = None, td_s: float | None = None):
     """A bag as an ``EurocDataset`` (no ground truth, no feature tracks).
 
-    ``cams``: calibration of cam0 (and cam1); ``topics``: explicit topics (else found,
-    see ``choose_topics``). Frames outside the IMU span are dropped with a warning.
+    ``cams``: the calibrated cameras, ``cam_hints`` their topics (Kalibr ``rostopic``);
+    ``topics``: explicit topics (else found, see ``choose_topics``). A chosen image topic
+    takes the calibration whose ``rostopic`` it is, else the next camera in order.
+    Frames outside the IMU span are dropped with a warning.
     """
     from vio.io.euroc import EurocDataset
     path = Path(path)
     reader = open_reader(path)
     try:
         available = {c.topic: c.msgtype for c in reader.connections}
-        tp = choose_topics(available, path, topics, cam_hints, imu_hint, max_cams=len(cams))
+        tp = choose_topics(available, path, topics, cam_hints, imu_hint, max_cams=min(2, len(cams)))
         warnings: list[str] = []
         sc = scan(reader, tp)
     finally:
         reader.close()
     imu = imu_data(sc, f"{path}:{tp.imu}", warnings)
-    streams = [camera_stream(path, t, sc, c, imu, warnings) for t, c in zip(tp.cams, cams)]
+    hints = list(cam_hints) + [None] * len(cams)
+    calibs = [cams[hints.index(t)] if t in hints else cams[i] for i, t in enumerate(tp.cams)]
+    streams = [camera_stream(path, t, sc, c, imu, warnings) for t, c in zip(tp.cams, calibs)]
     if len(streams) == 2:
         streams = list(pair_stereo(*streams, f"{path}:{tp.cams[1]}", warnings))
     for w in warnings:

@@ -29,7 +29,7 @@ def load_dataset(path: str | Path, trim: bool = False, topics: Sequence[str] | N
             if value is None:
                 raise DataError(path, f"a bag carries no calibration: give {flag} (Kalibr)")
         kc, ki = read_camchain(calib), read_kalibr_imu(imu_calib)
-        data = load_bag(path, kc.cams[:2], ki.calib, topics, kc.topics[:2], ki.topic, kc.td_s)
+        data = load_bag(path, kc.cams, ki.calib, topics, kc.topics, ki.topic, kc.td_s)
     else:
         if topics:
             raise DataError(path, "--topics applies to bags only")
