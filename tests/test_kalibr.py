@@ -40,6 +40,9 @@ def test_roundtrip_matches_sensor_yaml(euroc_kalibr):
     assert ki.calib.gyro_noise_density == data.imu_calib.gyro_noise_density
     assert ki.calib.accel_random_walk == data.imu_calib.accel_random_walk
     assert ki.calib.rate_hz == 200.0 and ki.topic == "/imu0"
+    folder = load_dataset(shared("euroc_MH_01_stereo_synimu"), calib=d / "camchain.yaml")
+    assert folder.td_s == 0.0025 and folder.imu_calib.gyro_noise_density == data.imu_calib.gyro_noise_density
+    assert folder.cam1.calib.intrinsics == data.cam1.calib.intrinsics
 
 
 def test_cam1_from_T_cn_cnm1_and_nested_imu(euroc_kalibr, tmp_path):
