@@ -175,3 +175,26 @@ def test_convert_cli_and_topics_flag(tmp_path, capsys):
     ref = load_euroc(folder)
     assert data.cam0.calib.intrinsics == ref.cam1.calib.intrinsics      # matched by rostopic
     np.testing.assert_array_equal(read_image(data.cam0.files[4]), read_image(ref.cam1.files[4]))
+
+
+def test_unstamped_messages_use_recording_times(tmp_path, mh01):
+    """A driver that leaves header stamps at 0: recording times, with a warning."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    out = tmp_path / "unstamped.bag"
+    with AnyReader([mh01.dir / "mh01.bag"]) as r, Writer(out) as w:
+        conns = {}
+        for c in r.connections:
+            if c.topic in ("/imu0", "/cam0/image_raw"):
+                conns[c.topic] = w.add_connection(c.topic, c.msgtype, typestore=ts)
+        for c, t, raw in r.messages(connections=[c for c in r.connections if c.topic in conns]):
+            msg = r.deserialize(raw, c.msgtype)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = 0, 0
+            w.write(conns[c.topic], t, ts.serialize_ros1(msg, c.msgtype))
+    data = load_dataset(out, calib=mh01.dir / "camchain.yaml", imu_calib=mh01.dir / "imu.yaml")
+    ref = load_euroc(mh01.folder)
+    assert sum("every header stamp is 0" in w for w in data.warnings) == 2
+    np.testing.assert_array_equal(data.cam0.t_ns, ref.cam0.t_ns[:N])
+    np.testing.assert_array_equal(read_image(data.cam0.files[3]), read_image(ref.cam0.files[3]))

@@ -159,11 +159,12 @@ class _Cursor:
             self._it = self.reader.messages(connections=self.conns, start=frame.log_ns)
         for _ in range(10_000):
             try:
-                conn, _, raw = next(self._it)
+                conn, log_ns, raw = next(self._it)
             except StopIteration:
                 break
             msg = self.reader.deserialize(raw, conn.msgtype)
-            if stamp_ns(msg) == frame.stamp_ns:
+            hs = stamp_ns(msg)
+            if hs == frame.stamp_ns or (hs == 0 and log_ns == frame.log_ns):   # unstamped: see _stamps
                 self._pos = frame.index
                 return to_gray(msg, conn.msgtype, str(frame))
         self._it = None
@@ -239,6 +240,7 @@ class _Scan:
     """Header stamps (and recording times) of the chosen topics, from one pass."""
 
     imu_t: list
+    imu_log: list
     imu_w: list
     imu_a: list
     cam_t: dict
@@ -249,18 +251,29 @@ def scan(reader, topics: BagTopics) -> _Scan:
     """One streamed pass over the bag: IMU samples and image stamps (images are not kept)."""
     wanted = {topics.imu, *topics.cams}
     conns = [c for c in reader.connections if c.topic in wanted]
-    out = _Scan([], [], [], {t: [] for t in topics.cams}, {t: [] for t in topics.cams})
+    out = _Scan([], [], [], [], {t: [] for t in topics.cams}, {t: [] for t in topics.cams})
     for conn, log_ns, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
         if conn.topic == topics.imu:
             w, a = msg.angular_velocity, msg.linear_acceleration
             out.imu_t.append(stamp_ns(msg))
+            out.imu_log.append(int(log_ns))
             out.imu_w.append((w.x, w.y, w.z))
             out.imu_a.append((a.x, a.y, a.z))
         else:
             out.cam_t[conn.topic].append(stamp_ns(msg))
             out.cam_log[conn.topic].append(int(log_ns))
     return out
+
+
+def _stamps(header: list, log_ns: list, where: str, warnings: list[str]) -> np.ndarray:
+    """Header stamps (int64 ns); the recording times when every header stamp is zero
+    (a driver that does not stamp its messages), with a warning."""
+    t = np.array(header, np.int64)
+    if t.size and not t.any():
+        warnings.append(f"{where}: every header stamp is 0: using the recording times")
+        return np.array(log_ns, np.int64)
+    return t
 
 
 def _sorted_unique(t: np.ndarray, where: str, warnings: list[str]) -> np.ndarray:
@@ -276,7 +289,7 @@ def _sorted_unique(t: np.ndarray, where: str, warnings: list[str]) -> np.ndarray
 
 def imu_data(sc: _Scan, where: str, warnings: list[str]) -> ImuData:
     """The scanned IMU samples, sorted by header stamp, non-finite samples dropped."""
-    t = np.array(sc.imu_t, np.int64)
+    t = _stamps(sc.imu_t, sc.imu_log, where, warnings)
     w, a = np.array(sc.imu_w, float).reshape(-1, 3), np.array(sc.imu_a, float).reshape(-1, 3)
     ok = np.isfinite(w).all(1) & np.isfinite(a).all(1)
     if not ok.all():
@@ -292,8 +305,8 @@ def camera_stream(bag: Path, topic: str, sc: _Scan, calib: CameraCalib, imu: Imu
                   warnings: list[str]) -> CameraStream:
     """The frames of one image topic inside the IMU span, as lazily read ``BagFrame``s."""
     where = f"{bag}:{topic}"
-    t = np.array(sc.cam_t[topic], np.int64)
     log_ns = sc.cam_log[topic]
+    t = _stamps(sc.cam_t[topic], log_ns, where, warnings)
     idx = _sorted_unique(t, where, warnings)
     inside = idx[(t[idx] >= imu.t_ns[0]) & (t[idx] <= imu.t_ns[-1])]
     if inside.size < idx.size:
