@@ -263,6 +263,13 @@ def _accuracy_job(spec) -> dict:
     return compare(spec, ds.prepare(spec), spec.pipeline_overrides(), log=lambda m: None)
 
 
+def _lost_job(spec, msg: str) -> dict:
+    """The row of a comparison whose Ray task died (``compare``'s keys)."""
+    return {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin, "td_true_ms": None,
+            "overrides": {}, "calib_error": spec.calib_error, "ours": {"error": msg},
+            "baseline": {"error": "not run"}, "ratio": {"ate": None, "time": None}}
+
+
 def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: dict | None = None,
                  workers: int = 1) -> dict:
     """Every dataset of ``modes`` (default: all), ``workers`` at a time (``vio.batch``);
@@ -270,10 +277,9 @@ def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: d
     specs, skipped = ds.registry(quick, modes)
     from vio.batch import map_jobs      # Ray tasks; one worker by default keeps the timings clean
     os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(HERE), os.environ.get("PYTHONPATH", "")])
-    rows = map_jobs(_accuracy_job, specs, workers, progress=False,
-                    on_error=lambda spec, msg: {"dataset": spec.name, "mode": spec.mode, "ours": {"error": msg}})
+    rows = map_jobs(_accuracy_job, specs, workers, desc="accuracy", on_error=_lost_job)
     for r in rows:
-        log(f"  {r['dataset']:32s} ours {_brief(r['ours'])} | baseline {_brief(r.get('baseline', {}))}")
+        log(f"  {r['dataset']:32s} ours {_brief(r['ours'])} | baseline {_brief(r['baseline'])}")
     if modes and keep:
         rows += [r for r in keep.get("runs", []) if r.get("mode", "features") not in modes]
         skipped = {**{k: v for k, v in keep.get("skipped", {}).items() if k not in ds.MODES or k not in modes},
