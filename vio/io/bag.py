@@ -345,7 +345,7 @@ def load_bag(path: str | Path, cams: Sequence[CameraCalib], imu_calib: ImuCalib,
     takes the calibration whose ``rostopic`` it is, else the next camera in order.
     Frames outside the IMU span are dropped with a warning.
     """
-    from vio.io.euroc import EurocDataset
+    from vio.io.euroc import EurocDataset, LoadOptions, imu_gap_warnings
     path = Path(path)
     reader = open_reader(path)
     try:
@@ -356,6 +356,7 @@ def load_bag(path: str | Path, cams: Sequence[CameraCalib], imu_calib: ImuCalib,
     finally:
         reader.close()
     imu = imu_data(sc, f"{path}:{tp.imu}", warnings)
+    warnings += imu_gap_warnings(imu, f"{path}:{tp.imu}", LoadOptions().max_imu_gap_s)
     hints = list(cam_hints) + [None] * len(cams)
     calibs = [cams[hints.index(t)] if t in hints else cams[i] for i, t in enumerate(tp.cams)]
     streams = [camera_stream(path, t, sc, c, imu, warnings) for t, c in zip(tp.cams, calibs)]
