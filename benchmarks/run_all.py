@@ -259,14 +259,27 @@ def td_summary(rows: list[dict]) -> list[dict]:
     return out
 
 
-def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: dict | None = None) -> dict:
-    """Every dataset of ``modes`` (default: all); with ``keep`` (a previous accuracy
-    section) the rows of the other modes are kept, so one mode can be refreshed."""
+def _accuracy_job(spec) -> dict:
+    return compare(spec, ds.prepare(spec), spec.pipeline_overrides(), log=lambda m: None)
+
+
+def _lost_job(spec, msg: str) -> dict:
+    """The row of a comparison whose Ray task died (``compare``'s keys)."""
+    return {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin, "td_true_ms": None,
+            "overrides": {}, "calib_error": spec.calib_error, "ours": {"error": msg},
+            "baseline": {"error": "not run"}, "ratio": {"ate": None, "time": None}}
+
+
+def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: dict | None = None,
+                 workers: int = 1) -> dict:
+    """Every dataset of ``modes`` (default: all), ``workers`` at a time (``vio.batch``);
+    with ``keep`` (a previous accuracy section) the rows of the other modes are kept."""
     specs, skipped = ds.registry(quick, modes)
-    rows = []
-    for spec in specs:
-        path = ds.prepare(spec)
-        rows.append(compare(spec, path, spec.pipeline_overrides(), log=log))
+    from vio.batch import map_jobs      # Ray tasks; one worker by default keeps the timings clean
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(HERE), os.environ.get("PYTHONPATH", "")])
+    rows = map_jobs(_accuracy_job, specs, workers, desc="accuracy", on_error=_lost_job)
+    for r in rows:
+        log(f"  {r['dataset']:32s} ours {_brief(r['ours'])} | baseline {_brief(r['baseline'])}")
     if modes and keep:
         rows += [r for r in keep.get("runs", []) if r.get("mode", "features") not in modes]
         skipped = {**{k: v for k, v in keep.get("skipped", {}).items() if k not in ds.MODES or k not in modes},
@@ -345,6 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", help=f"comma list of accuracy modes (default all of {tuple(ds.MODES)}); "
                     "rows of other modes in an existing results.json are kept")
     ap.add_argument("--readme", type=Path, help="README whose results section to refresh")
+    ap.add_argument("--workers", type=int, default=1, help="parallel accuracy jobs on Ray (>1 skews timings)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -370,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     modes = [m.strip() for m in args.modes.split(",")] if args.modes else None
     if modes and set(modes) - set(ds.MODES):
         ap.error(f"unknown mode(s) {sorted(set(modes) - set(ds.MODES))}; choose from {tuple(ds.MODES)}")
-    runners = {"accuracy": lambda q, log: run_accuracy(q, log, modes, results.get("accuracy")),
+    runners = {"accuracy": lambda q, log: run_accuracy(q, log, modes, results.get("accuracy"), args.workers),
                "micro": run_micro, "scaling": scaling.run_scaling, "memory": memory_soak.run_soak}
     for name in sections:
         print(f"[{name}]", flush=True)

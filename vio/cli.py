@@ -1,4 +1,4 @@
-"""Command line: ``vio run | sim | tracks | eval | plan``.
+"""Command line: ``vio run | sim | tracks | eval | plan | convert | batch``.
 
 Bad input is reported as one line naming the file (and line) with exit code 2;
 the CLI never shows a traceback for a user error.
@@ -15,8 +15,9 @@ from vio.errors import ConfigError, DataError
 
 
 def _add_run(sub) -> None:
-    p = sub.add_parser("run", help="run the VIO on an EuRoC/ASL folder (or --demo)")
-    p.add_argument("dataset", nargs="?", type=Path, help="EuRoC/ASL folder (contains mav0/)")
+    p = sub.add_parser("run", help="run the VIO on an EuRoC/ASL/TUM-VI folder, a ROS 1/2 bag (or --demo)")
+    p.add_argument("dataset", nargs="?", type=Path,
+                   help="EuRoC/ASL folder (contains mav0/), ROS 1 .bag file or ROS 2 bag folder")
     p.add_argument("--demo", action="store_true",
                    help="run on the real EuRoC V1_01 tracks shipped inside the gtsam wheel")
     p.add_argument("--config", type=Path, help="YAML file overriding the defaults")
@@ -27,6 +28,12 @@ def _add_run(sub) -> None:
                    default="auto")
     p.add_argument("--td", type=float, default=None, help="initial camera-IMU offset td [s]")
     p.add_argument("--trim", action="store_true", help="drop camera frames outside the IMU span")
+    p.add_argument("--calib", type=Path, help="Kalibr camchain.yaml (cameras, T_cam_imu, timeshift as td)")
+    p.add_argument("--imu-calib", type=Path, help="Kalibr imu.yaml (noise densities, random walks)")
+    p.add_argument("--topics", type=lambda s: [t for t in s.split(",") if t],
+                   help="bag topics, comma-separated: the IMU and 1-2 cameras (cam0 first)")
+    p.add_argument("--groundtruth", type=Path, help="ground truth to evaluate against (TUM file, "
+                   "ASL data.csv or a dataset folder); default: the dataset's own")
     p.add_argument("--map", type=Path, help="save the landmark map (.npz) for `vio plan`")
     p.add_argument("--smooth", type=Path, help="write a Kalman-smoothed planar track (TUM)")
     p.add_argument("--rerun", action="store_true", help="stream to a Rerun viewer")
@@ -54,6 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
     tracks_cli.add_parser(sub)
     from vio.nav import cli as nav_cli
     nav_cli.add_parsers(sub)
+    from vio import batch
+    from vio.io import bag_write
+    bag_write.add_parser(sub)
+    batch.add_parser(sub)
     return parser
 
 
@@ -73,7 +84,10 @@ def _handlers() -> dict:
     from vio.nav import cli as nav_cli
     from vio.sim import cli as sim_cli
     from vio.sim import tracks_cli
-    return {"sim": sim_cli.run, "tracks": tracks_cli.run, "plan": nav_cli.run_plan}
+    from vio import batch
+    from vio.io import bag_write
+    return {"sim": sim_cli.run, "tracks": tracks_cli.run, "plan": nav_cli.run_plan, "convert": bag_write.run,
+            "batch": batch.run}
 
 
 def main(argv: list[str] | None = None) -> int:

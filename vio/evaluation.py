@@ -36,11 +36,29 @@ def _evo_traj(t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray):
                             timestamps=np.asarray(t_ns, np.float64) * 1e-9)
 
 
+def overlap_problem(est_t_ns: np.ndarray, gt: GroundTruth, max_diff_s: float = 0.01) -> str | None:
+    """None when at least 3 estimate stamps have a ground-truth pose within ``max_diff_s``;
+    otherwise a one-line reason naming both time spans (seconds)."""
+    est_t_ns = np.asarray(est_t_ns, np.int64)
+    if len(gt) == 0 or est_t_ns.size == 0:
+        return f"ground truth has {len(gt)} poses, the estimate {est_t_ns.size}"
+    j = np.clip(np.searchsorted(gt.t_ns, est_t_ns), 1, max(len(gt) - 1, 1))
+    near = np.minimum(np.abs(gt.t_ns[j - 1] - est_t_ns), np.abs(gt.t_ns[np.minimum(j, len(gt) - 1)] - est_t_ns))
+    n = int((near <= max_diff_s * 1e9).sum())
+    if n >= 3:
+        return None
+    return (f"ground truth [{gt.t_ns[0] * 1e-9:.3f}, {gt.t_ns[-1] * 1e-9:.3f}] s does not overlap the estimate "
+            f"[{est_t_ns[0] * 1e-9:.3f}, {est_t_ns[-1] * 1e-9:.3f}] s ({n} poses within {max_diff_s * 1e3:.0f} ms)")
+
+
 def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt: GroundTruth,
              sim3: bool = False, max_diff_s: float = 0.01, rpe_delta_m: float = 1.0
              ) -> TrajectoryErrors:
     """Associate by time, align (SE3, or Sim3 for mono), and compute ATE/RPE."""
     from evo.core import metrics, sync
+    problem = overlap_problem(est_t_ns, gt, max_diff_s)
+    if problem is not None:
+        raise ValueError(problem)
     est = _evo_traj(est_t_ns, est_p, est_q_wxyz)
     ref = _evo_traj(gt.t_ns, gt.p_w, gt.q_wxyz)
     ref, est = sync.associate_trajectories(ref, est, max_diff=max_diff_s)
@@ -67,19 +85,15 @@ def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt
 
 def evaluate_files(est_path: str | Path, gt_path: str | Path, sim3: bool = False,
                    plot: str | Path | None = None) -> TrajectoryErrors:
-    """ATE/RPE of a TUM estimate against a TUM file or an EuRoC folder / data.csv."""
-    from vio.io.euroc import read_groundtruth, read_tum
+    """ATE/RPE of a TUM estimate against a TUM file, an ASL data.csv (EuRoC estimate or
+    TUM-VI mocap0) or a dataset folder holding one."""
+    from vio.io.euroc import read_tum
+    from vio.io.load import load_groundtruth
     est = read_tum(Path(est_path))
-    gt_path = Path(gt_path)
-    if gt_path.is_dir():
-        from vio.io.euroc import find_mav0
-        gt = read_groundtruth(find_mav0(gt_path) / "state_groundtruth_estimate0")
-        if gt is None:
-            raise FileNotFoundError(f"{gt_path}: no ground truth found")
-    elif gt_path.suffix == ".csv":
-        gt = read_groundtruth(gt_path.parent)
-    else:
-        gt = read_tum(gt_path)
+    gt = load_groundtruth(gt_path)
+    problem = overlap_problem(est.t_ns, gt)
+    if problem is not None:
+        raise ValueError(f"{est_path} vs {gt_path}: {problem}")
     res = evaluate(est.t_ns, est.p_w, est.q_wxyz, gt, sim3)
     if plot is not None:
         save_plot(est, gt, res, Path(plot), sim3)

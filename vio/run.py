@@ -15,7 +15,7 @@ import numpy as np
 
 from vio.config import from_dict, read_yaml
 from vio.conventions import quat_wxyz_from_rot
-from vio.io.euroc import EurocDataset, LoadOptions, load_euroc
+from vio.io.euroc import EurocDataset
 from vio.pipeline import FrameOutput, Pipeline, PipelineConfig
 from vio.sync import FramePacket, packets
 from vio.trajectory import write_tum
@@ -33,6 +33,7 @@ class RunResult:
     wall_s: float = 0.0
     data_s: float = 0.0
     recoveries: int = 0
+    init_s: float | None = None   # data time from the first packet to the one that initialized
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
 
@@ -158,11 +159,15 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         from tqdm import tqdm
         bar = tqdm(total=len(stamps), unit="frame", leave=False)
     t0 = time.perf_counter()
+    t_first = None
     for pkt in it:
         res.frames_in += 1
+        t_first = pkt.t_ns if t_first is None else t_first
         if stage is not None:
             pkt = stage(pkt)
         outs = pipe.process(pkt)
+        if outs and res.init_s is None:
+            res.init_s = (pkt.t_ns - t_first) * 1e-9
         res.outputs.extend(outs)
         for out in outs:
             if out.landmark_ids is not None:
@@ -197,10 +202,14 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
         t = last.T_b_c.translation()
         lines.append(f"extrinsic t_b_c {np.round(t, 4)} m")
     if data.groundtruth is not None and len(res.outputs) > 3:
-        from vio.evaluation import evaluate
-        e = evaluate(*res.arrays(), data.groundtruth)
-        lines.append(f"ATE RMSE        {e.ate_rmse:.4f} m (SE3-aligned, {e.n_matched} poses, "
-                     f"path {e.path_length:.1f} m)")
+        from vio.evaluation import evaluate, overlap_problem
+        problem = overlap_problem(res.arrays()[0], data.groundtruth)
+        if problem is not None:
+            lines.append(f"ATE             not evaluated: {problem}")
+        else:
+            e = evaluate(*res.arrays(), data.groundtruth)
+            lines.append(f"ATE RMSE        {e.ate_rmse:.4f} m (SE3-aligned, {e.n_matched} poses, "
+                         f"path {e.path_length:.1f} m)")
     return lines
 
 
@@ -212,9 +221,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     elif args.dataset is None:
         raise ValueError("give a DATASET folder or --demo")
     else:
-        data = load_euroc(args.dataset, LoadOptions(trim_to_imu=args.trim))
+        from vio.io.load import load_dataset
+        data = load_dataset(args.dataset, args.trim, getattr(args, "topics", None), getattr(args, "calib", None),
+                            getattr(args, "imu_calib", None), getattr(args, "groundtruth", None))
     mode = resolve_mode(data, args.mode)
-    cfg = load_config(args.config, args.td, mode)
+    cfg = load_config(args.config, args.td if args.td is not None else data.td_s, mode)
     sinks = []
     if args.rerun or args.rrd:
         from vio.viz import RerunSink

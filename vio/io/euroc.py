@@ -7,6 +7,7 @@ Layout (``ROOT`` may be the folder holding ``mav0`` or ``mav0`` itself)::
     mav0/cam0/features.csv                            feature tracks (normalized coords)
     mav0/cam1/...                                     optional second camera
     mav0/state_groundtruth_estimate0/data.csv or groundtruth_tum.txt   optional
+    mav0/mocap0/data.csv                              optional (TUM-VI ground truth)
 
 Every problem is a ``DataError`` naming the file and line. Images load lazily
 (``read_image``). Soft problems (IMU gaps) are collected in ``warnings`` and logged.
@@ -17,6 +18,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -25,7 +27,7 @@ from vio.errors import ConfigError, DataError
 from vio.io.calib import load_camera, read_imu_yaml
 from vio.io.csvio import check_increasing, read_numeric, read_text_lines
 from vio.io.features import read_features
-from vio.io.types import CameraStream, FeatureFrame, GroundTruth, ImuCalib, ImuData
+from vio.io.types import CameraCalib, CameraStream, FeatureFrame, GroundTruth, ImuCalib, ImuData
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +54,7 @@ class EurocDataset:
     groundtruth: GroundTruth | None
     features: list[FeatureFrame] | None
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    td_s: float | None = None   # initial camera-IMU offset from the calibration (Kalibr), if any
 
     @property
     def kind(self) -> str:
@@ -75,16 +78,26 @@ def find_mav0(root: str | Path) -> Path:
     raise DataError(root, "not an EuRoC/ASL folder: neither mav0/ nor imu0/ found")
 
 
-def load_euroc(root: str | Path, options: LoadOptions = LoadOptions()) -> EurocDataset:
-    """Load and validate a dataset folder (see module docstring)."""
+def load_euroc(root: str | Path, options: LoadOptions = LoadOptions(),
+               cams: Sequence[CameraCalib] | None = None, imu_calib: ImuCalib | None = None,
+               td_s: float | None = None) -> EurocDataset:
+    """Load and validate a dataset folder (see module docstring). ``cams`` / ``imu_calib``
+    (e.g. from Kalibr files) replace the ``sensor.yaml`` files, which then need not
+    exist; a camera folder beyond ``len(cams)`` is not used. ``td_s``: initial td."""
     mav0 = find_mav0(root)
     warnings: list[str] = []
     imu_dir = mav0 / "imu0"
     imu = read_imu_csv(imu_dir / "data.csv")
     warnings += imu_gap_warnings(imu, imu_dir / "data.csv", options.max_imu_gap_s)
-    imu_calib = _calib(read_imu_yaml, imu_dir / "sensor.yaml")
-    cam0, all0 = read_camera(mav0 / "cam0", imu, options, warnings, required=True)
-    cam1, _ = read_camera(mav0 / "cam1", imu, options, warnings, required=False)
+    if imu_calib is None:
+        imu_calib = _calib(read_imu_yaml, imu_dir / "sensor.yaml")
+    cal0, cal1 = (None, None) if cams is None else (cams[0], cams[1] if len(cams) > 1 else False)
+    cam0, all0 = read_camera(mav0 / "cam0", imu, options, warnings, required=True, calib=cal0)
+    cam1 = None
+    if cal1 is not False:
+        cam1, _ = read_camera(mav0 / "cam1", imu, options, warnings, required=False, calib=cal1)
+    elif (mav0 / "cam1").is_dir():
+        warnings.append(f"{mav0 / 'cam1'}: not in the calibration given, not used")
     features = None
     feat_path = mav0 / "cam0" / "features.csv"
     if feat_path.is_file():
@@ -92,10 +105,12 @@ def load_euroc(root: str | Path, options: LoadOptions = LoadOptions()) -> EurocD
         keep = {int(t) for t in cam0.t_ns}
         features = [f for f in features if f.t_ns in keep]  # frames trimmed to the IMU span
     gt = read_groundtruth(mav0 / "state_groundtruth_estimate0")
+    if gt is None:   # TUM-VI: motion-capture poses of the IMU
+        gt = read_groundtruth(mav0 / "mocap0")
     for w in warnings:
         log.warning(w)
     return EurocDataset(mav0.parent if mav0.name == "mav0" else mav0, imu, imu_calib, cam0,
-                        cam1, gt, features, tuple(warnings))
+                        cam1, gt, features, tuple(warnings), td_s)
 
 
 def _calib(reader, path: Path):
@@ -126,17 +141,18 @@ def imu_gap_warnings(imu: ImuData, path: Path, max_gap_s: float) -> list[str]:
 
 
 def read_camera(cam_dir: Path, imu: ImuData, options: LoadOptions, warnings: list[str],
-                required: bool) -> tuple[CameraStream | None, np.ndarray]:
-    """A camera folder: ``sensor.yaml`` and ``data.csv`` (stamps, image names).
-
-    Returns the stream (frames inside the IMU span) and all stamps of data.csv.
+                required: bool, calib: CameraCalib | None = None) -> tuple[CameraStream | None, np.ndarray]:
+    """A camera folder: ``sensor.yaml`` (unless ``calib`` is given) and ``data.csv``
+    (stamps, image names). Returns the stream (frames inside the IMU span) and all
+    stamps of data.csv.
     """
     none = np.zeros(0, dtype=np.int64)
     if not cam_dir.is_dir():
         if required:
             raise DataError(cam_dir, "camera folder not found")
         return None, none
-    calib = load_camera(cam_dir / "sensor.yaml", cam_dir.name)
+    if calib is None:
+        calib = load_camera(cam_dir / "sensor.yaml", cam_dir.name)
     csv = cam_dir / "data.csv"
     if not csv.is_file():  # calibration only (e.g. IMU + ground-truth folders)
         return CameraStream(calib, none), none
@@ -182,9 +198,10 @@ def _read_image_list(csv: Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     return t_ns, names, np.array(nos, dtype=np.int64)
 
 
-def read_groundtruth(gt_dir: Path) -> GroundTruth | None:
-    """EuRoC ``data.csv`` (p, q_wxyz[, v, bg, ba]) or TUM ``groundtruth_tum.txt``; None if absent."""
-    csv, tum = gt_dir / "data.csv", gt_dir / "groundtruth_tum.txt"
+def read_groundtruth(gt_dir: Path, name: str = "data.csv") -> GroundTruth | None:
+    """EuRoC ``data.csv`` (p, q_wxyz[, v, bg, ba]; TUM-VI ``mocap0/data.csv`` is the
+    7-column form) or TUM ``groundtruth_tum.txt``; None if absent."""
+    csv, tum = gt_dir / name, gt_dir / "groundtruth_tum.txt"
     if csv.is_file():
         table = read_numeric(csv, (7, 16))
         check_increasing(table)
@@ -219,7 +236,10 @@ def _normalized_quats(q: np.ndarray, table) -> np.ndarray:
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable."""
+    """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable. Accepts
+    any reference with a ``read_gray()`` method as well (``vio.io.bag.BagFrame``)."""
+    if hasattr(path, "read_gray"):
+        return path.read_gray()
     path = Path(path)
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
     if img is None:

@@ -45,6 +45,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="no IMU white noise, no bias random walk, no pixel noise")
     p.add_argument("--no-images", action="store_true",
                    help="write IMU, ground truth and calibration only (e.g. for `vio tracks`)")
+    p.add_argument("--tumvi", action="store_true",
+                   help="TUM-VI layout: equidistant fisheye 512x512, mocap0, dso/ Kalibr files")
     p.add_argument("--force", action="store_true", help="replace an existing OUT/mav0")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
     p.set_defaults(func=run)
@@ -80,6 +82,15 @@ def run(args: argparse.Namespace) -> int:
     from vio.sim import simulate
 
     t0 = time.perf_counter()
+    if getattr(args, "tumvi", False):
+        from vio.sim.fisheye import simulate_tumvi
+        try:
+            simulate_tumvi(args.out, cfg, overwrite=getattr(args, "force", False))
+        except (FileExistsError, OSError) as exc:
+            print(f"vio sim: {exc}", file=sys.stderr)
+            return 1
+        print(f"vio sim: wrote a TUM-VI-like fisheye sequence to {args.out} in {time.perf_counter() - t0:.1f} s")
+        return 0
     try:
         res = simulate(args.out, cfg, progress=getattr(args, "progress", False),
                        overwrite=getattr(args, "force", False))
