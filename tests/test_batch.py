@@ -78,3 +78,11 @@ def test_spec_errors(tmp_path):
     jobs = read_spec(tmp_path / "s.yaml", tmp_path)
     assert [j.mode for j in jobs] == ["mono", "stereo"]
     assert jobs[0].dataset["calib"] == str(tmp_path / "c.yaml")
+
+
+def test_unreachable_cluster_is_one_line(tmp_path, capsys):
+    (tmp_path / "s.yaml").write_text("datasets: [a]\n")
+    rc = main(["batch", str(tmp_path / "s.yaml"), "--out", str(tmp_path / "o"), "--address", "127.0.0.1:9"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "--address 127.0.0.1:9: no Ray cluster answers" in err and err.count("\n") == 1

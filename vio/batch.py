@@ -177,7 +177,21 @@ def _plot_alone(est, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """A ``HOST:PORT`` address must accept a connection (Ray itself retries for minutes)."""
+    import socket
+    host, _, port = address.rpartition(":")
+    if "://" in address or not host or not port.isdigit():
+        return                                   # "auto", "ray://...": left to Ray
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ValueError(f"--address {address}: no Ray cluster answers ({exc.strerror or exc})") from None
+
+
 def _init_ray(workers: int | None, address: str | None):
+    if address:
+        _check_reachable(address)
     import ray
     if ray.is_initialized():
         return ray
