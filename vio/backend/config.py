@@ -56,6 +56,35 @@ class DynamicInitConfig:
 
 
 @dataclass(frozen=True)
+class StereoInitConfig:
+    """Stereo-inertial initialization (``vio.backend.stereo_init``), used first whenever
+    cam1 is present. ``window_s``: frames aligned (every frame, from the first stereo
+    pair); a rejected window grows up to ``max_window_s``, after which its oldest frames
+    are dropped. PnP: inlier threshold ``pnp_px``, at least ``min_inliers`` inliers per
+    frame and ``min_points`` stereo points in the first frame. The linear alignment
+    weights positions by ``pos_sigma_m`` (m) and velocity increments by ``accel_sigma``
+    (m/s^2, the unknown accelerometer bias) times the interval; it is rejected with a
+    gravity norm off by more than ``max_gravity_error`` (relative), a gravity direction
+    sigma above ``max_gravity_sigma_deg`` or a first-velocity sigma above
+    ``max_v0_sigma`` (m/s). The smoother's initial priors are twice the alignment's
+    sigmas, at least ``min_rp_sigma`` (rad) and ``min_vel_sigma`` (m/s)."""
+
+    enabled: bool = True
+    window_s: float = 0.5
+    max_window_s: float = 2.0
+    pnp_px: float = 2.0
+    min_inliers: int = 12
+    min_points: int = 20
+    pos_sigma_m: float = 0.002
+    accel_sigma: float = 0.1
+    max_gravity_error: float = 0.05
+    max_gravity_sigma_deg: float = 1.5
+    max_v0_sigma: float = 0.1
+    min_rp_sigma: float = 0.01
+    min_vel_sigma: float = 0.05
+
+
+@dataclass(frozen=True)
 class InitConfig:
     """Initialization. Static: the first ``static_window_s`` of IMU must be still
     (50-ms mean gyro within ``max_gyro_std`` rad/s and accel within ``max_accel_std``
@@ -63,7 +92,8 @@ class InitConfig:
     ``max_still_flow_px``: a motionless camera's tracks still move by their noise, a median
     of about 1.7 pixel sigmas (1.1-1.5 px on the 0.7-px generated tracks, where the old 1-px
     mean never detected the Machine Hall's still start). Otherwise
-    dynamic initialization (``dynamic``, see ``DynamicInitConfig``). ``prior_*``: the
+    dynamic initialization (``dynamic``, see ``DynamicInitConfig``). With cam1, the
+    stereo initialization (``stereo``, ``StereoInitConfig``) comes first. ``prior_*``: the
     initial state's priors (position and yaw fix the gauge); ``zupt_sigma`` (m/s):
     zero-velocity updates while still."""
 
@@ -72,6 +102,7 @@ class InitConfig:
     max_accel_std: float = 0.6
     max_still_flow_px: float = 2.0
     dynamic: DynamicInitConfig = field(default_factory=DynamicInitConfig)
+    stereo: StereoInitConfig = field(default_factory=StereoInitConfig)
     prior_pos_sigma: float = 1e-3
     prior_yaw_sigma: float = 1e-3
     prior_rp_sigma: float = 0.02
