@@ -107,6 +107,20 @@ def test_constant_velocity_window_is_rejected(seed, omega):
     assert "acceleration" in res.reason, res.reason
 
 
+def test_poorly_scaled_window_is_rejected():
+    """Little acceleration (0.16 m/s^2 of excitation, above ``min_excitation``): the batch
+    pins the window's metric translation only to ~21% (the same window at 1 m/s^2: ~4%),
+    so the initialization is refused instead of starting with a guessed scale."""
+    win, cam, *_ = _synthetic_window(0.2, np.array([0.3, 0.2, -0.1]))
+    res = align(win, cam, IMU_CALIB, BackendConfig())
+    assert not res.ok and res.state is None
+    assert res.excitation > BackendConfig().init.dynamic.min_excitation
+    assert "scale poorly determined" in res.reason, res.reason
+    assert res.scale_sigma > BackendConfig().init.dynamic.max_scale_sigma   # measured 0.21
+    good = align(_synthetic_window(1.0, np.array([0.3, 0.2, -0.1]))[0], cam, IMU_CALIB, BackendConfig())
+    assert good.ok and good.scale_sigma < 0.08                                # measured 0.043
+
+
 def test_hovering_window_is_accepted():
     """Rotating in place, no acceleration: no scale either, but no translation parallax
     (rotation alone explains the tracks), so ``v0 ~ 0`` is safe and accepted."""

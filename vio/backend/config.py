@@ -35,7 +35,9 @@ class DynamicInitConfig:
     RMS (no scale) unless the window is still (rotation alone explains the tracks within
     ``max_still_parallax_px`` and ``|v0| <= max_v0_sigma``), a batch mean factor error
     above ``max_mean_error``, or a batch solution further than ``max_v0_disagreement``
-    m/s / ``max_gravity_disagreement_deg`` from the alignment."""
+    m/s / ``max_gravity_disagreement_deg`` from the alignment, or a relative standard
+    deviation of the batch window's translation (its metric scale) above
+    ``max_scale_sigma`` (unless the translation is within 3 sigma of zero)."""
 
     window_s: float = 1.5
     step_s: float = 0.1
@@ -53,6 +55,7 @@ class DynamicInitConfig:
     max_mean_error: float = 20.0
     max_v0_disagreement: float = 0.15
     max_gravity_disagreement_deg: float = 1.5
+    max_scale_sigma: float = 0.2
 
 
 @dataclass(frozen=True)
