@@ -26,7 +26,10 @@ class DynamicInitConfig:
     on ``window_s`` of keyframes every ``step_s``, using the ``max_tracks`` longest
     tracks. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
     makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
-    ``gyro_bias_sigma`` rad/s and its reprojection errors a Huber kernel at ``huber_px``.
+    ``visual_gyro_bias_sigma`` rad/s about the bias that aligns the IMU with the visual
+    rotations between keyframes (``vio.backend.gyro_init``) when at least
+    ``min_rotation_pairs`` keyframe pairs give one, else of ``gyro_bias_sigma``
+    about zero; its reprojection errors have a Huber kernel at ``huber_px``.
     A solution is rejected (the pipeline waits for a later window) with fewer than
     ``min_landmarks`` tracks, a free-gravity norm off by more than ``max_gravity_error``
     (relative), fewer than ``min_inlier_ratio`` inlier observations, a median inlier
@@ -56,6 +59,8 @@ class DynamicInitConfig:
     max_v0_disagreement: float = 0.15
     max_gravity_disagreement_deg: float = 1.5
     max_scale_sigma: float = 0.2
+    visual_gyro_bias_sigma: float = 0.01
+    min_rotation_pairs: int = 3
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ visual-inertial alignment, solved here without a separate SfM stage).
    ``x`` every ``rho`` has a closed form (least squares of ``[m_j]x P_j = 0``, whose size
    is the angular error since ``P_j`` is scaled by the anchor depth), so ``x`` minimises
    the Huber-robust reprojection errors of the reduced problem (variable projection):
-   from three starts at zero bias, then with ``bg`` free (prior) after dropping outliers.
+   from three starts at the gyro bias of the visual rotations (``gyro_init``), then with ``bg`` free (prior) after dropping outliers.
    ``|g0|`` stays free; its deviation from ``g`` is a consistency check.
 3. A batch Levenberg-Marquardt over the window (``CombinedImuFactor`` + landmark factors,
    inlier observations) refines poses, velocities, inverse depths and IMU biases.
@@ -49,6 +49,7 @@ import numpy as np
 from factors.landmark import landmark_factor, make_track
 from factors.robust import RobustKernel
 from vio.backend.config import BackendConfig, InitConfig
+from vio.backend.gyro_init import gyro_bias, window_rotations
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
@@ -226,6 +227,9 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     obs = window_observations(win, tracks)
     fx = cam.intrinsics[0]
     prob = AlignProblem(obs, pims, cam, gravity, ic)
+    rots = window_rotations(win.features, cam.T_b_c, fx)
+    if len(rots) >= ic.dynamic.min_rotation_pairs:
+        prob.bg0, prob.bg_sigma = gyro_bias(pims, rots), ic.dynamic.visual_gyro_bias_sigma
     vi = vi_align(prob, ic, cfg.vision.outlier_px / fx, cfg.vision.pixel_sigma / fx)
     gerr = abs(np.linalg.norm(vi.g0) - g_norm) / g_norm
     reason, diag = _vi_checks(prob, vi, ic, gerr)

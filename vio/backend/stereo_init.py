@@ -38,6 +38,7 @@ import gtsam
 import numpy as np
 
 from vio.backend.config import BackendConfig, StereoInitConfig
+from vio.backend.gyro_init import gyro_bias
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.landmarks import stereo_depth
 from vio.imu import combined_params
@@ -142,26 +143,6 @@ def refine_poses(points: dict[int, np.ndarray], frames, poses: list[gtsam.Pose3]
     return [est.atPose3(Xk(j)) for j in range(len(poses))]
 
 
-def gyro_bias(pims: list, R_b: np.ndarray, iters: int = 3) -> np.ndarray:
-    """Gyro bias (3,) rad/s aligning the preintegrated rotations with the visual body
-    rotations ``R_b`` (K,3,3), by Gauss-Newton with a numeric Jacobian."""
-    def res(bg: np.ndarray) -> np.ndarray:
-        b = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
-        out = []
-        for k, pim in enumerate(pims):
-            dR = pim.predict(gtsam.NavState(), b).attitude()
-            rel = gtsam.Rot3(R_b[k].T @ R_b[k + 1])
-            out.append(gtsam.Rot3.Logmap(dR.between(rel)))
-        return np.concatenate(out)
-
-    bg = np.zeros(3)
-    for _ in range(iters):
-        r = res(bg)
-        J = np.stack([(res(bg + h) - r) / 1e-6 for h in np.eye(3) * 1e-6], axis=1)
-        bg = bg - np.linalg.lstsq(J, r, rcond=None)[0]
-    return bg
-
-
 def alignment_system(pims: list, R_b: np.ndarray, p_b: np.ndarray, bg: np.ndarray,
                      gravity: np.ndarray, cfg: StereoInitConfig) -> tuple[np.ndarray, np.ndarray]:
     """Weighted linear system ``A x = b`` over ``x = [v_0..v_K-1, g]`` (3K+3, b0 frame)
@@ -244,7 +225,7 @@ def stereo_align(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, imu_calib: ImuCali
     pims = preintegrate_window(win, params)
     R_b = np.array([p.rotation().matrix() for p in poses])
     p_b = np.array([p.translation() for p in poses])
-    bg = gyro_bias(pims, R_b)
+    bg = gyro_bias(pims, [(k, k + 1, R_b[k].T @ R_b[k + 1]) for k in range(len(pims))])
     A, b = alignment_system(pims, R_b, p_b, bg, gravity, sc)
     v, g, cov = velocity_gravity(A, b)
     g_norm = cfg.imu.gravity
