@@ -23,7 +23,8 @@ and ORB-SLAM3's stereo-inertial inertial-only optimization with the scale held a
    velocity's below ``max_v0_sigma``. Otherwise the pipeline waits for a longer window.
 
 The result is the first frame's state in a gravity-aligned world with zero yaw, with
-prior sigmas from the alignment's covariance; the pipeline starts the smoother there and
+prior sigmas from the alignment's covariance and the accelerometer bias along gravity
+from the ``|g|`` mismatch (the only component separable from tilt here); the pipeline starts the smoother there and
 replays the window, so every frame from the first stereo pair on gets a pose, and the
 smoother's stereo and IMU factors then refine gravity, velocity and biases.
 """
@@ -250,7 +251,7 @@ def stereo_align(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, imu_calib: ImuCali
     R_w_b0 = gravity_aligned_rotation(-g0)
     rp_sigma = max(sc.min_rp_sigma, 2.0 * np.radians(gsig))
     state = InitialState(win.t_ns[0], gtsam.Pose3(R_w_b0, np.zeros(3)), R_w_b0.rotate(v[0]),
-                         gtsam.imuBias.ConstantBias(np.zeros(3), bg), "stereo",
+                         gtsam.imuBias.ConstantBias((g_norm - np.linalg.norm(g)) * u, bg), "stereo",
                          rp_sigma=rp_sigma, vel_sigma=max(sc.min_vel_sigma, 2.0 * vsig))
     log.info("stereo initialization over %.2f s: gravity sigma %.2f deg, |g| error %.1f%%, "
              "v0 %s m/s (sigma %.3f), gyro bias %s", (win.t_ns[-1] - win.t_ns[0]) * 1e-9, gsig,
