@@ -101,6 +101,7 @@ class Pipeline:
         self._trim_t: int | None = None
         self.n_keyframes = 0
         self._t_first: int | None = None
+        self._next_try: int | None = None
         self.init_info: InitInfo | None = None
 
     # -------------------------------------------------------------- helpers
@@ -194,16 +195,30 @@ class Pipeline:
                 return []
             self._init_buf = []
             return [self._emit(pkt, True, True, t0)]
+        return self._dynamic_initialize(t0)
+
+    def _dynamic_initialize(self, t0: float) -> list[FrameOutput]:
+        """Dynamic alignment of the buffer once it spans ``window_s``. A refused window
+        grows (one more attempt every ``retry_s``: the excitation that fixes scale and
+        gravity accumulates, and the first frames keep their poses) up to
+        ``max_window_s``; then the oldest frames are dropped to ``0.7 window_s``."""
+        dc = self.cfg.backend.init.dynamic
         buf = self._init_buf
-        if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic.window_s:
+        span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
+        if span < dc.window_s or (self._next_try is not None and buf[-1].t_ns < self._next_try):
             return []
-        res = align(init_window(buf, ic.dynamic.step_s), self.cam, self.imu_calib, self.cfg.backend)
-        if not res.ok:
-            log.info("dynamic initialization not yet possible: %s", res.reason)
-            keep = buf[-1].t_ns - int(ic.dynamic.window_s * 0.7e9)
+        res = align(init_window(buf, dc.step_s), self.cam, self.imu_calib, self.cfg.backend)
+        if res.ok:
+            self._next_try = None
+            return self._replay(res.state, t0)
+        log.info("dynamic initialization over %.2f s not yet possible: %s", span, res.reason)
+        if span + dc.retry_s > dc.max_window_s + 1e-6:
+            keep = buf[-1].t_ns - int(dc.window_s * 0.7e9)
             self._init_buf = [p for p in buf if p.t_ns >= keep]
-            return []
-        return self._replay(res.state, t0)
+            self._next_try = None
+        else:
+            self._next_try = buf[-1].t_ns + int(dc.retry_s * 1e9)
+        return []
 
     def _stereo_initialize(self, pkt: FramePacket, t0: float) -> list[FrameOutput] | None:
         """Stereo-inertial alignment of the buffered frames (``vio.backend.stereo_init``):

@@ -24,7 +24,8 @@ class KeyframeConfig:
 class DynamicInitConfig:
     """Dynamic initialization (visual-inertial alignment, ``vio.backend.dynamic_init``)
     on ``window_s`` of keyframes every ``step_s``, using the ``max_tracks`` longest
-    tracks. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
+    tracks; a refused window grows by ``retry_s`` per attempt up to ``max_window_s``
+    (excitation accumulates), then slides. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
     makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
     ``visual_gyro_bias_sigma`` rad/s about the bias that aligns the IMU with the visual
     rotations between keyframes (``vio.backend.gyro_init``) when at least
@@ -43,6 +44,8 @@ class DynamicInitConfig:
     ``max_scale_sigma`` (unless the translation is within 3 sigma of zero)."""
 
     window_s: float = 1.5
+    max_window_s: float = 3.0
+    retry_s: float = 0.5
     step_s: float = 0.1
     max_tracks: int = 80
     min_landmarks: int = 15
