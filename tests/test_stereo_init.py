@@ -110,8 +110,27 @@ def loop_stereo(tmp_path_factory):
     return _render(tmp_path_factory, "loop_stereo", seconds=3.0, seed=5)
 
 
+def test_constant_velocity_motion_option():
+    """``vio sim --motion constant_velocity``: the room is lengthened for the pass, a
+    config whose room is too short is refused, and the path is straight at the speed."""
+    import argparse
+    from vio.errors import ConfigError
+    from vio.sim.cli import config_from_args
+    from vio.sim.config import SimConfig
+    from vio.sim.trajectory import make_trajectory
+    cfg = config_from_args(argparse.Namespace(motion="constant_velocity", seconds=20.0, speed=0.7))
+    assert cfg.room_size[0] >= 0.7 * 20 + 2 * cfg.wall_margin_m
+    s = make_trajectory(cfg).sample(np.arange(0, 20, 0.01))
+    assert np.all(s.p_w[:, 0] > cfg.wall_margin_m - 0.1) and np.all(s.p_w[:, 0] < cfg.room_size[0] - 1.0)
+    assert abs(np.mean(s.v_w[:, 0]) - 0.7) < 0.01 and np.abs(s.a_w).max() < 0.1
+    with pytest.raises(ConfigError, match="constant_velocity"):
+        SimConfig(seconds=20.0, motion="constant_velocity")
+
+
 def _check_from_first_frame(data, bound: float) -> float:
+    from vio.run import summary
     res = run_dataset(data, PipelineConfig(), mode="stereo")
+    assert any(line.startswith("initialization  stereo after 0.50 s") for line in summary(res, data))
     assert res.init is not None and res.init.method == "stereo"
     assert res.init.state_s == 0.0 and res.init.decided_s < 0.6
     assert len(res.outputs) == res.frames_in == len(data.cam0.t_ns)
