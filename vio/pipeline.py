@@ -19,6 +19,7 @@ from vio.backend.config import BackendConfig
 from vio.backend.estimator import Estimator
 from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
+from vio.backend.stereo_init import stereo_align
 from vio.direct.config import DirectConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
@@ -69,6 +70,18 @@ class FrameOutput:
     packet: FramePacket | None = None
 
 
+@dataclass(frozen=True)
+class InitInfo:
+    """How and when the estimator was initialized: ``method`` (stereo, static, dynamic),
+    ``decided_s``: data seconds from the first frame to the decision (the latency
+    before the first output), ``state_s``: from the first frame to the initial state
+    (the first frame with a pose)."""
+
+    method: str
+    decided_s: float
+    state_s: float
+
+
 class Pipeline:
     """VIO on feature packets: feed ``FramePacket``s with ``features`` in time order to
     ``process`` (image packets go through ``vio.tracking.ImageStage`` first). With
@@ -87,6 +100,9 @@ class Pipeline:
         self._kf_t: int = 0
         self._trim_t: int | None = None
         self.n_keyframes = 0
+        self._t_first: int | None = None
+        self._next_try: int | None = None
+        self.init_info: InitInfo | None = None
 
     # -------------------------------------------------------------- helpers
     def _window_imu(self):
@@ -161,34 +177,83 @@ class Pipeline:
                             np.zeros(0))
 
     def _initialize(self, pkt: FramePacket, t0: float) -> list[FrameOutput]:
-        """Static initialization when still, else dynamic alignment over a buffered
-        window, which is then replayed through the estimator."""
+        """With cam1 the stereo-inertial alignment over the first frames; otherwise (or
+        when it fails for ``max_window_s``) static initialization when still, else
+        dynamic alignment over a buffered window. Stereo and dynamic initialization
+        replay their window through the estimator."""
         ic = self.cfg.backend.init
+        if self._t_first is None:
+            self._t_first = pkt.t_ns
         self._init_buf.append(pkt)
+        if self.est.T_c0_c1 is not None and ic.stereo.enabled:
+            outs = self._stereo_initialize(pkt, t0)
+            if outs is not None:
+                return outs
         imu, span = self._window_imu()
         if span >= ic.static_window_s - 1e-3 and self._still():
-            if not self._start(static_init(imu, pkt.t_ns), pkt):
+            if not self._start(static_init(imu, pkt.t_ns), pkt, pkt):
                 return []
             self._init_buf = []
             return [self._emit(pkt, True, True, t0)]
+        return self._dynamic_initialize(t0)
+
+    def _dynamic_initialize(self, t0: float) -> list[FrameOutput]:
+        """Dynamic alignment of the buffer once it spans ``window_s``. A refused window
+        grows (one more attempt every ``retry_s``: the excitation that fixes scale and
+        gravity accumulates, and the first frames keep their poses) up to
+        ``max_window_s``; then the oldest frames are dropped to ``0.7 window_s``."""
+        dc = self.cfg.backend.init.dynamic
         buf = self._init_buf
-        if (buf[-1].t_ns - buf[0].t_ns) * 1e-9 < ic.dynamic.window_s:
+        span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
+        if span < dc.window_s or (self._next_try is not None and buf[-1].t_ns < self._next_try):
             return []
-        res = align(init_window(buf, ic.dynamic.step_s), self.cam, self.imu_calib, self.cfg.backend)
-        if not res.ok:
-            log.info("dynamic initialization not yet possible: %s", res.reason)
-            keep = buf[-1].t_ns - int(ic.dynamic.window_s * 0.7e9)
+        res = align(init_window(buf, dc.step_s), self.cam, self.imu_calib, self.cfg.backend)
+        if res.ok:
+            self._next_try = None
+            return self._replay(res.state, t0)
+        log.info("dynamic initialization over %.2f s not yet possible: %s", span, res.reason)
+        if span + dc.retry_s > dc.max_window_s + 1e-6:
+            keep = buf[-1].t_ns - int(dc.window_s * 0.7e9)
             self._init_buf = [p for p in buf if p.t_ns >= keep]
+            self._next_try = None
+        else:
+            self._next_try = buf[-1].t_ns + int(dc.retry_s * 1e9)
+        return []
+
+    def _stereo_initialize(self, pkt: FramePacket, t0: float) -> list[FrameOutput] | None:
+        """Stereo-inertial alignment of the buffered frames (``vio.backend.stereo_init``):
+        the outputs of the replayed window, [] while waiting, None when the window has
+        grown past ``max_window_s`` without success (then the other initializations try)."""
+        sc = self.cfg.backend.init.stereo
+        buf = self._init_buf
+        span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
+        if span < sc.window_s - 1e-6:
             return []
+        if span > sc.max_window_s + 1e-6:
+            return None
+        res = stereo_align(init_window(buf, 0.0), self.cam, self.est.T_c0_c1, self.imu_calib,
+                           self.cfg.backend)
+        if not res.ok:
+            log.info("stereo initialization not yet possible over %.2f s: %s", span, res.reason)
+            if span + 1e-6 >= sc.max_window_s:
+                log.warning("stereo initialization failed for %.1f s (%s); trying the IMU-based "
+                            "initializations", span, res.reason)
+            return []
+        return self._replay(res.state, t0)
+
+    def _replay(self, state, t0: float) -> list[FrameOutput]:
+        """Start at the buffer's first frame and replay the rest of the buffer."""
+        buf = self._init_buf
         self._init_buf = []
-        if not self._start(res.state, buf[0]):
+        if not self._start(state, buf[0], buf[-1]):
             return []
         # the alignment's cost is charged to the window's first frame
         outs = [self._emit(buf[0], True, False, t0)]
         return outs + [self._step(p, time.perf_counter()) for p in buf[1:]]
 
-    def _start(self, state, pkt: FramePacket) -> bool:
-        """Initialize the estimator; False (and still uninitialized) if the solver refuses."""
+    def _start(self, state, pkt: FramePacket, now: FramePacket) -> bool:
+        """Initialize the estimator at ``pkt`` (decided at packet ``now``); False (and
+        still uninitialized) if the solver refuses."""
         try:
             self.est.initialize(state)
         except RuntimeError as exc:
@@ -202,6 +267,8 @@ class Pipeline:
             src.observe(0, pkt)
         self._kf_features, self._kf_t = pkt.features, pkt.t_ns
         self.n_keyframes = 1
+        t_first = self._t_first if self._t_first is not None else pkt.t_ns
+        self.init_info = InitInfo(state.method, (now.t_ns - t_first) * 1e-9, (pkt.t_ns - t_first) * 1e-9)
         log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,
                  np.round(state.bias.gyroscope(), 4))
         return True

@@ -16,7 +16,7 @@ import numpy as np
 from vio.config import from_dict, read_yaml
 from vio.conventions import quat_wxyz_from_rot
 from vio.io.euroc import EurocDataset
-from vio.pipeline import FrameOutput, Pipeline, PipelineConfig
+from vio.pipeline import FrameOutput, InitInfo, Pipeline, PipelineConfig
 from vio.sync import FramePacket, packets
 from vio.trajectory import write_tum
 
@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RunResult:
-    """Everything one run produced (online estimate per processed frame)."""
+    """Everything one run produced (online estimate per processed frame). ``init``: how
+    and when the estimator initialized (None: never)."""
 
     outputs: list[FrameOutput] = field(default_factory=list)
     frames_in: int = 0
@@ -33,9 +34,9 @@ class RunResult:
     wall_s: float = 0.0
     data_s: float = 0.0
     recoveries: int = 0
-    init_s: float | None = None   # data time from the first packet to the one that initialized
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
+    init: InitInfo | None = None
 
     def map_points(self) -> np.ndarray:
         """(N, 3) latest world estimate of every landmark seen in the run."""
@@ -159,15 +160,11 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         from tqdm import tqdm
         bar = tqdm(total=len(stamps), unit="frame", leave=False)
     t0 = time.perf_counter()
-    t_first = None
     for pkt in it:
         res.frames_in += 1
-        t_first = pkt.t_ns if t_first is None else t_first
         if stage is not None:
             pkt = stage(pkt)
         outs = pipe.process(pkt)
-        if outs and res.init_s is None:
-            res.init_s = (pkt.t_ns - t_first) * 1e-9
         res.outputs.extend(outs)
         for out in outs:
             if out.landmark_ids is not None:
@@ -183,6 +180,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
     res.keyframes = pipe.n_keyframes
     res.recoveries = pipe.est.recoveries
+    res.init = pipe.init_info
     return res
 
 
@@ -190,6 +188,11 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
     """Human-readable summary lines (ATE when ground truth is present)."""
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
              f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"]
+    if res.init is None:
+        lines.append("initialization  not reached")
+    else:
+        lines.append(f"initialization  {res.init.method} after {res.init.decided_s:.2f} s of data "
+                     f"(first pose at {res.init.state_s:.2f} s)")
     if res.outputs:
         ms = np.array([o.seconds for o in res.outputs]) * 1e3
         rtf = res.data_s / res.wall_s if res.wall_s > 0 else float("inf")

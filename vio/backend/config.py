@@ -24,9 +24,13 @@ class KeyframeConfig:
 class DynamicInitConfig:
     """Dynamic initialization (visual-inertial alignment, ``vio.backend.dynamic_init``)
     on ``window_s`` of keyframes every ``step_s``, using the ``max_tracks`` longest
-    tracks. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
+    tracks; a refused window grows by ``retry_s`` per attempt up to ``max_window_s``
+    (excitation accumulates), then slides. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
     makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
-    ``gyro_bias_sigma`` rad/s and its reprojection errors a Huber kernel at ``huber_px``.
+    ``visual_gyro_bias_sigma`` rad/s about the bias that aligns the IMU with the visual
+    rotations between keyframes (``vio.backend.gyro_init``) when at least
+    ``min_rotation_pairs`` keyframe pairs give one, else of ``gyro_bias_sigma``
+    about zero; its reprojection errors have a Huber kernel at ``huber_px``.
     A solution is rejected (the pipeline waits for a later window) with fewer than
     ``min_landmarks`` tracks, a free-gravity norm off by more than ``max_gravity_error``
     (relative), fewer than ``min_inlier_ratio`` inlier observations, a median inlier
@@ -35,9 +39,13 @@ class DynamicInitConfig:
     RMS (no scale) unless the window is still (rotation alone explains the tracks within
     ``max_still_parallax_px`` and ``|v0| <= max_v0_sigma``), a batch mean factor error
     above ``max_mean_error``, or a batch solution further than ``max_v0_disagreement``
-    m/s / ``max_gravity_disagreement_deg`` from the alignment."""
+    m/s / ``max_gravity_disagreement_deg`` from the alignment, or a relative standard
+    deviation of the batch window's translation (its metric scale) above
+    ``max_scale_sigma`` (unless the translation is within 3 sigma of zero)."""
 
     window_s: float = 1.5
+    max_window_s: float = 3.0
+    retry_s: float = 0.5
     step_s: float = 0.1
     max_tracks: int = 80
     min_landmarks: int = 15
@@ -53,6 +61,38 @@ class DynamicInitConfig:
     max_mean_error: float = 20.0
     max_v0_disagreement: float = 0.15
     max_gravity_disagreement_deg: float = 1.5
+    max_scale_sigma: float = 0.2
+    visual_gyro_bias_sigma: float = 0.01
+    min_rotation_pairs: int = 3
+
+
+@dataclass(frozen=True)
+class StereoInitConfig:
+    """Stereo-inertial initialization (``vio.backend.stereo_init``), used first whenever
+    cam1 is present. ``window_s``: frames aligned (every frame, from the first stereo
+    pair); a rejected window grows up to ``max_window_s``, after which its oldest frames
+    are dropped. PnP: inlier threshold ``pnp_px``, at least ``min_inliers`` inliers per
+    frame and ``min_points`` stereo points in the first frame. The linear alignment
+    weights positions by ``pos_sigma_m`` (m) and velocity increments by ``accel_sigma``
+    (m/s^2, the unknown accelerometer bias) times the interval; it is rejected with a
+    gravity norm off by more than ``max_gravity_error`` (relative), a gravity direction
+    sigma above ``max_gravity_sigma_deg`` or a first-velocity sigma above
+    ``max_v0_sigma`` (m/s). The smoother's initial priors are twice the alignment's
+    sigmas, at least ``min_rp_sigma`` (rad) and ``min_vel_sigma`` (m/s)."""
+
+    enabled: bool = True
+    window_s: float = 0.5
+    max_window_s: float = 2.0
+    pnp_px: float = 2.0
+    min_inliers: int = 12
+    min_points: int = 20
+    pos_sigma_m: float = 0.002
+    accel_sigma: float = 0.1
+    max_gravity_error: float = 0.05
+    max_gravity_sigma_deg: float = 1.5
+    max_v0_sigma: float = 0.1
+    min_rp_sigma: float = 0.01
+    min_vel_sigma: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -63,7 +103,8 @@ class InitConfig:
     ``max_still_flow_px``: a motionless camera's tracks still move by their noise, a median
     of about 1.7 pixel sigmas (1.1-1.5 px on the 0.7-px generated tracks, where the old 1-px
     mean never detected the Machine Hall's still start). Otherwise
-    dynamic initialization (``dynamic``, see ``DynamicInitConfig``). ``prior_*``: the
+    dynamic initialization (``dynamic``, see ``DynamicInitConfig``). With cam1, the
+    stereo initialization (``stereo``, ``StereoInitConfig``) comes first. ``prior_*``: the
     initial state's priors (position and yaw fix the gauge); ``zupt_sigma`` (m/s):
     zero-velocity updates while still."""
 
@@ -72,6 +113,7 @@ class InitConfig:
     max_accel_std: float = 0.6
     max_still_flow_px: float = 2.0
     dynamic: DynamicInitConfig = field(default_factory=DynamicInitConfig)
+    stereo: StereoInitConfig = field(default_factory=StereoInitConfig)
     prior_pos_sigma: float = 1e-3
     prior_yaw_sigma: float = 1e-3
     prior_rp_sigma: float = 0.02

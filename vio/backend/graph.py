@@ -43,20 +43,22 @@ def state_priors(k: int, state: InitialState, cfg: InitConfig,
     pin the wrong axis: EuRoC's IMU x axis points up, so body "yaw" is a tilt, and the
     start's tilt error (accel bias not yet separable from gravity) stayed locked in.
     ``pose_sigmas`` (6,): isotropic-per-block body-frame sigmas instead (recovery).
-    Velocity (m/s) and bias [accel m/s^2, gyro rad/s] priors are diagonal.
+    Velocity (m/s) and bias [accel m/s^2, gyro rad/s] priors are diagonal. The state's
+    own ``rp_sigma`` / ``vel_sigma`` (an initializer's covariance) replace the defaults.
     """
     g = gtsam.NonlinearFactorGraph()
     if pose_sigmas is None:
         R = state.T_w_b.rotation().matrix()
         cov = np.zeros((6, 6))
-        cov[:3, :3] = R.T @ np.diag([cfg.prior_rp_sigma, cfg.prior_rp_sigma, cfg.prior_yaw_sigma]) ** 2 @ R
+        rp = cfg.prior_rp_sigma if state.rp_sigma is None else state.rp_sigma
+        cov[:3, :3] = R.T @ np.diag([rp, rp, cfg.prior_yaw_sigma]) ** 2 @ R
         cov[3:, 3:] = np.eye(3) * cfg.prior_pos_sigma ** 2
         pose_noise = gtsam.noiseModel.Gaussian.Covariance(cov)
     else:
         pose_noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)
     g.add(gtsam.PriorFactorPose3(X(k), state.T_w_b, pose_noise))
-    g.add(gtsam.PriorFactorVector(V(k), state.v_w,
-                                  gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_vel_sigma)))
+    vel = cfg.prior_vel_sigma if state.vel_sigma is None else state.vel_sigma
+    g.add(gtsam.PriorFactorVector(V(k), state.v_w, gtsam.noiseModel.Isotropic.Sigma(3, vel)))
     bias_sigmas = np.r_[np.full(3, cfg.prior_accel_bias_sigma), np.full(3, cfg.prior_gyro_bias_sigma)]
     g.add(gtsam.PriorFactorConstantBias(B(k), state.bias,
                                         gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))

@@ -21,13 +21,17 @@ from vio.io.types import ImuData
 @dataclass(frozen=True)
 class InitialState:
     """The first keyframe's state: ``T_w_b`` (yaw 0, gravity along -z of the world),
-    ``v_w`` m/s, IMU bias, and how it was found."""
+    ``v_w`` m/s, IMU bias, and how it was found. ``rp_sigma`` (rad) / ``vel_sigma``
+    (m/s): the initializer's own roll-pitch / velocity prior sigmas (None: the
+    ``InitConfig`` defaults)."""
 
     t_ns: int
     T_w_b: gtsam.Pose3
     v_w: np.ndarray
     bias: gtsam.imuBias.ConstantBias
     method: str
+    rp_sigma: float | None = None
+    vel_sigma: float | None = None
 
 
 @dataclass(frozen=True)

@@ -108,7 +108,9 @@ def chain_increments(pims: list, bg: np.ndarray, gravity: np.ndarray
 class AlignProblem:
     """The reduced alignment problem over ``x = [v0, g0, bg]`` (b0 frame, gyro bias).
 
-    The gyro bias has a prior (``DynamicInitConfig.gyro_bias_sigma``): in a short window a yaw-rate
+    The gyro bias has a prior (mean ``bg0``, sigma ``bg_sigma``: ``DynamicInitConfig.
+    gyro_bias_sigma`` about zero, or ``visual_gyro_bias_sigma`` about the bias measured
+    from visual rotations by ``gyro_init``): in a short window a yaw-rate
     error and a sideways velocity error look alike (only depth differences separate
     them), and the observations it is estimated from must be outlier-free (a few swapped
     tracks pulled it by 0.06 rad/s and ``v0`` by 0.5 m/s in the simulated windows)."""
@@ -120,6 +122,7 @@ class AlignProblem:
         self.rho_lim = (1.0 / ic.dynamic.max_depth_m, 10.0)
         self.bg_sigma = ic.dynamic.gyro_bias_sigma
         self.mask = np.ones(len(obs.lm), bool)
+        self.bg0 = np.zeros(3)   # gyro bias of the bias-fixed stage and prior mean (``gyro_init``)
         self._cache: tuple[bytes, tuple] | None = None
         _, _, dv = chain_increments(pims, np.zeros(3), gravity)
         self.g_imu = -dv[-1] / obs.t[-1]   # gravity if v_K = v_0: a starting point only
@@ -153,22 +156,22 @@ class AlignProblem:
 
     def residuals(self, x: np.ndarray, full: bool = False):
         """Masked reprojection errors (2N,) and the gyro-bias prior (3,) for
-        ``x = [v0, g0, bg]`` (9,) or ``[v0, g0]`` (6,, zero bias), in normalized image
+        ``x = [v0, g0, bg]`` (9,) or ``[v0, g0]`` (6,, at gyro bias ``bg0``), in normalized image
         units (the prior: one pixel per sigma); ``full`` also returns ``(rho, r (N,2))``."""
-        bg = x[6:9] if len(x) == 9 else np.zeros(3)
+        bg = x[6:9] if len(x) == 9 else self.bg0
         ray, c, M = self.geometry(bg)
         tr = c + M @ x[:6]
         rho = self.rho(ray, tr)
         P = ray + rho[self.obs.lm][:, None] * tr
         r = P[:, :2] / np.maximum(P[:, 2:3], 1e-2) - self.obs.uv
-        out = np.r_[(r * self.mask[:, None]).ravel(), bg / (self.bg_sigma * self.fx)]
+        out = np.r_[(r * self.mask[:, None]).ravel(), (bg - self.bg0) / (self.bg_sigma * self.fx)]
         return (out, rho, r) if full else out
 
     def alternate(self, depth: float, iters: int = 15) -> np.ndarray:
-        """A starting ``[v0, g0]`` (zero gyro bias) by alternating least squares from equal
+        """A starting ``[v0, g0]`` (gyro bias ``bg0``) by alternating least squares from equal
         depths ``depth`` m: for fixed inverse depths ``[m_j]x (ray + rho (c + M x)) = 0``
         is linear in ``x``, and for a fixed ``x`` each ``rho`` has its closed form."""
-        ray, c, M = self.geometry(np.zeros(3))
+        ray, c, M = self.geometry(self.bg0)
         K, lm = self.obs.skew, self.obs.lm
         Kr, Kc, KM = (np.einsum("nij,nj...->ni...", K, v) for v in (ray, c, M))
         rho, x = np.full(len(self.obs.ids), 1.0 / depth), np.zeros(6)
@@ -236,7 +239,8 @@ def _robust_lm(fun, x0: np.ndarray, k: float, steps: np.ndarray, max_iter: int =
 
 
 def vi_align(prob: AlignProblem, ic: InitConfig, outlier: float, sigma: float) -> ViSolution:
-    """Robust alignment at zero gyro bias from several starts (zero velocity with the
+    """Robust alignment at the gyro bias ``prob.bg0`` (the visual-rotation estimate of
+    ``gyro_init``, else zero) from several starts (zero velocity with the
     IMU's gravity guess, and :meth:`AlignProblem.alternate` from 1 m and 3 m; the lowest
     cost wins), then twice with the gyro bias free, each time keeping only the
     observations whose error is below ``outlier`` (normalized). ``sigma``: observation
@@ -252,7 +256,7 @@ def vi_align(prob: AlignProblem, ic: InitConfig, outlier: float, sigma: float) -
         x, cost, _ = _robust_lm(prob.residuals, x0, k, steps[:6])
         if best is None or cost < best[1]:
             best = (x, cost)
-    x = np.r_[best[0], np.zeros(3)]
+    x = np.r_[best[0], prob.bg0]
     for _ in range(2):
         prob.mask[:] = True
         _, _, r = prob.residuals(x, full=True)

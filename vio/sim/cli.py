@@ -18,7 +18,7 @@ from vio.sim.config import SimConfig
 # CLI flag destination -> SimConfig field
 _FIELDS = {"seconds": "seconds", "seed": "seed", "td": "td_s", "line_time": "line_time_s",
            "stereo": "stereo", "exposure": "exposure_changes", "scale": "image_scale",
-           "image_noise": "image_noise_sigma", "speed": "speed_mps"}
+           "image_noise": "image_noise_sigma", "speed": "speed_mps", "motion": "motion"}
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -41,6 +41,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--scale", type=float, help="image scale of the 752x480 EuRoC resolution (default 1)")
     p.add_argument("--image-noise", type=float, dest="image_noise", help="pixel noise sigma, gray levels")
     p.add_argument("--speed", type=float, help="mean speed in m/s (default 0.7)")
+    p.add_argument("--motion", choices=("loop", "constant_velocity"),
+                   help="loop (default: perturbed ellipse, IMU excitation) or constant_velocity "
+                        "(a straight pass, acceleration ~0.03 m/s^2 RMS; the room is lengthened to fit)")
     p.add_argument("--noise-free", action="store_true",
                    help="no IMU white noise, no bias random walk, no pixel noise")
     p.add_argument("--no-images", action="store_true",
@@ -69,7 +72,18 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         data.update(imu_noise=False, image_noise_sigma=0.0)
     if getattr(args, "no_images", False):
         data["render_images"] = False
+    if data.get("motion") == "constant_velocity" and "room_size" not in data:
+        data["room_size"] = _pass_room(data)
     return from_dict(SimConfig, data, str(args.config) if getattr(args, "config", None) else "vio sim")
+
+
+def _pass_room(data: dict) -> list[float]:
+    """The default room lengthened along x for a straight pass of ``data``'s duration
+    and speed (``SimConfig.motion == "constant_velocity"``)."""
+    d = SimConfig()
+    need = (data.get("speed_mps", d.speed_mps) * data.get("seconds", d.seconds)
+            + 2 * data.get("wall_margin_m", d.wall_margin_m) + 0.5)
+    return [max(d.room_size[0], need), d.room_size[1], d.room_size[2]]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -13,6 +13,7 @@ from typing import Literal
 from vio.errors import ConfigError
 
 ExposureMode = Literal["none", "smooth", "step"]
+MotionMode = Literal["loop", "constant_velocity"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,12 @@ class SimConfig:
     (horizontally) from the path; ``texels_per_m`` texture resolution. The path is a
     perturbed elliptic loop ``wall_margin_m`` from the walls at mean speed about
     ``speed_mps``; yaw follows the loop plus sweeps peaking near ``yaw_sweep_dps``.
+    ``motion = "constant_velocity"``: instead a straight pass along world x at
+    ``speed_mps`` (a car, a smooth drone pass), looking sideways at the y = Ly wall with
+    the same yaw sweeps and small pitch/roll; position wiggles of 1-2 cm keep the
+    acceleration within ~0.03 m/s^2 RMS, so the IMU alone fixes no scale. The room must be
+    long enough: ``room_size[0] >= speed_mps * seconds + 2 * wall_margin_m``
+    (``vio sim --motion constant_velocity`` lengthens it when ``--config`` does not set it).
     """
 
     seconds: float = 10.0
@@ -74,6 +81,7 @@ class SimConfig:
     speed_mps: float = 0.7
     yaw_sweep_dps: float = 35.0
     wall_margin_m: float = 1.5
+    motion: MotionMode = "loop"
 
     def __post_init__(self) -> None:
         checks = [
@@ -95,6 +103,9 @@ class SimConfig:
             (self.speed_mps > 0 and self.yaw_sweep_dps >= 0, "speeds must be positive"),
             (self.wall_margin_m > 0.3, "wall_margin_m must be > 0.3 m"),
             (self.t0_ns > 0, "t0_ns must be > 0"),
+            (self.motion != "constant_velocity"
+             or self.room_size[0] >= self.speed_mps * self.seconds + 2 * self.wall_margin_m - 1e-9,
+             "motion constant_velocity needs room_size[0] >= speed_mps * seconds + 2 * wall_margin_m"),
         ]
         for ok, msg in checks:
             if not ok:

@@ -1,6 +1,6 @@
 """Smooth analytic 6-DoF body (IMU) trajectory with exact derivatives.
 
-Position: a perturbed elliptic loop around the room centre,
+Position (``SimConfig.motion == "loop"``, the default): a perturbed elliptic loop around the room centre,
 ``p(t) = c + [rx cos(alpha), ry sin(alpha), 0] + sum_k A_k sin(w_k t + phi_k)``,
 ``alpha = alpha0 + Omega t``. Orientation: ``R_w_b = Rz(psi) Ry(theta) Rx(phi) R0``
 where ``R0`` makes the body z axis (the optical axis of the EuRoC cameras) horizontal
@@ -10,6 +10,9 @@ angle plus sinusoidal sweeps, ``theta``/``phi`` are small sinusoids (pitch/roll)
 Times ``t`` are float seconds relative to the sequence start (``SimConfig.t0_ns``).
 Body angular velocity: for ``R = R1 R2 R3 R0`` with ``R_i^T dR_i = [w_i]x``,
 ``omega_b = R0^T (R3^T R2^T w1 + R3^T w2 + w3)``.
+
+``motion == "constant_velocity"``: zero radii, a linear term along x and centimetre
+wiggles (see :func:`_constant_velocity`); the orientation model is the same.
 """
 
 from __future__ import annotations
@@ -139,9 +142,33 @@ def _sines(rng: np.random.Generator, n: int, amp: float, f_lo: float, f_hi: floa
     return Sines(c0, c1, w, 2 * np.pi * rng.uniform(f_lo, f_hi, n), rng.uniform(0, 2 * np.pi, n))
 
 
+def _constant_velocity(cfg: SimConfig, rng: np.random.Generator) -> Trajectory:
+    """A straight pass along world x at ``speed_mps`` from ``wall_margin_m``, half-way
+    across y, looking at the y = Ly wall (yaw 90 deg) with the loop's yaw sweeps and
+    pitch/roll. Position wiggles of 1-1.5 cm at 0.1-0.2 Hz: the kinematic acceleration
+    stays within ~0.03 m/s^2, too little for an IMU-only scale (``DynamicInitConfig.
+    min_excitation``)."""
+    _, Ly, Lz = cfg.room_size
+    z_mid = min(max(0.45 * Lz, 0.6), Lz - 0.6)
+    pos = (_sines(rng, 2, 0.015, 0.1, 0.2, cfg.wall_margin_m, cfg.speed_mps),
+           _sines(rng, 2, 0.015, 0.1, 0.2, Ly / 2),
+           _sines(rng, 2, 0.01, 0.1, 0.2, z_mid))
+    alpha = Sines(np.pi / 2, 0.0, np.zeros(0), np.zeros(0), np.zeros(0))
+    f_yaw = 0.2
+    yaw_amp = np.deg2rad(cfg.yaw_sweep_dps) / (2 * np.pi * f_yaw)
+    yaw_extra = _sines(rng, 2, yaw_amp, 0.8 * f_yaw, 1.2 * f_yaw, rng.uniform(-0.3, 0.3))
+    pitch = _sines(rng, 2, 0.15, 0.1, 0.4, rng.uniform(0.0, 0.2))
+    roll = _sines(rng, 2, 0.1, 0.1, 0.4)
+    return Trajectory(np.array([cfg.room_size[0] / 2, Ly / 2, z_mid]), 0.0, 0.0, alpha, pos,
+                      yaw_extra, pitch, roll)
+
+
 def make_trajectory(cfg: SimConfig) -> Trajectory:
-    """The seed-determined trajectory of ``cfg`` (its own random stream)."""
+    """The seed-determined trajectory of ``cfg`` (its own random stream): the default
+    elliptic loop, or a straight pass (``cfg.motion == "constant_velocity"``)."""
     rng = np.random.default_rng([cfg.seed, 1])
+    if cfg.motion == "constant_velocity":
+        return _constant_velocity(cfg, rng)
     Lx, Ly, Lz = cfg.room_size
     pert = min(0.15, 0.1 * min(Lx, Ly))
     rx = max(Lx / 2 - cfg.wall_margin_m - pert, 0.2)
