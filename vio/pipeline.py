@@ -20,6 +20,7 @@ from vio.backend.estimator import Estimator
 from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
 from vio.direct.config import DirectConfig
+from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
@@ -37,10 +38,12 @@ class PipelineConfig:
     return freed heap memory to the OS every so many seconds of data (0: never; see
     ``vio.memory``), which keeps the resident size of long runs flat.
     ``imu_lookahead_s``: IMU the sync layer serves past each frame (s): the td term
-    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency."""
+    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency.
+    ``imu_screen``: IMU fault screening and gap detection in the sync layer (``vio.faults``)."""
 
     td_s: float = 0.0
     imu_lookahead_s: float = 0.02
+    imu_screen: ImuScreenConfig = field(default_factory=ImuScreenConfig)
     trim_heap_every_s: float = 60.0
     backend: BackendConfig = field(default_factory=BackendConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)

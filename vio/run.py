@@ -123,12 +123,14 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
                    pipe: Pipeline) -> tuple[Iterator[FramePacket], Callable | None]:
     """The packets of a run and the stage applied to each in this process (None when
     there is none, or when the KLT front end runs in a worker process, ``vio.overlap``)."""
+    ic = data.imu_calib
+    screen = dict(lookahead_s=cfg.imu_lookahead_s, screen=cfg.imu_screen, rate_hz=ic.rate_hz,
+                  accel_range=ic.accel_range, gyro_range=ic.gyro_range)
     if mode == "features":
-        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)],
-                       lookahead_s=cfg.imu_lookahead_s), None
+        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)], **screen), None
     stereo = mode in STEREO_MODES
     it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
-                 lookahead_s=cfg.imu_lookahead_s)
+                 **screen)
     if mode in ("direct", "hybrid"):
         from vio.direct.mode import attach
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid")
