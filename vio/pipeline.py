@@ -90,6 +90,8 @@ class Pipeline:
         self._kf_t: int = 0
         self._trim_t: int | None = None
         self.n_keyframes = 0
+        self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
+        self.imu_dropped = 0
 
     # -------------------------------------------------------------- helpers
     def _window_imu(self):
@@ -113,6 +115,8 @@ class Pipeline:
 
     def _still(self) -> bool:
         ic = self.cfg.backend.init
+        if any(p.imu_gaps for p in self._recent):   # interpolated across a gap: looks still
+            return False
         imu, span = self._window_imu()
         if span < 0.8 * ic.static_window_s:
             return False
@@ -138,14 +142,24 @@ class Pipeline:
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
-        self.est.add_imu(pkt.imu, pkt.imu_ahead)
+        self._count_faults(pkt)
+        self.est.add_imu(pkt.imu, pkt.imu_ahead, gap=bool(pkt.imu_gaps))
         still = self._still()
-        if self._is_keyframe(pkt):
+        # the IMU resumed in this packet: a keyframe here ends the bridge, the next interval
+        # gets an IMU factor again
+        resumed = any(end <= pkt.t_ns for _, end in pkt.imu_gaps)
+        if resumed or self._is_keyframe(pkt):
             self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
             self._kf_features, self._kf_t = pkt.features, pkt.t_ns
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0)
         return self._emit(pkt, False, still, t0)
+
+    def _count_faults(self, pkt: FramePacket) -> None:
+        """IMU gaps (distinct) and dropped samples met by the estimator (``vio.faults``)."""
+        self.imu_dropped += pkt.imu_dropped
+        for g in pkt.imu_gaps:
+            self.imu_gaps.add(g)
 
     def _maybe_trim(self, t_ns: int) -> None:
         every = self.cfg.trim_heap_every_s

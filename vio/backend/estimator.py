@@ -21,9 +21,10 @@ import numpy as np
 
 from vio.backend import graph
 from vio.backend.config import BackendConfig
+from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.tracks import LandmarkManager
-from vio.imu import KeyframeRates, combined_params, integrate
+from vio.imu import KeyframeRates, bridge_params, combined_params, integrate, integrate_still
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 
 log = logging.getLogger(__name__)
@@ -93,6 +94,16 @@ class Estimator:
         self.T_c0_c1 = cam.T_b_c.between(cam1.T_b_c) if cam1 is not None else None
         self.C_stereo = cam1.T_b_c.compose(cam.T_b_c.inverse()) if cam1 is not None else None
         self.params = combined_params(imu_calib, cfg.imu)
+        self.bridge_params = bridge_params(imu_calib, cfg.imu, cfg.bridge.accel_density,
+                                           cfg.bridge.gyro_density)
+        self._bridge_t: int | None = None   # bridging an IMU gap: synthetic readings up to here
+        w = cfg.imu.scale_walk
+        self.health = HealthMonitor(
+            cfg.health, np.r_[np.full(3, cfg.init.prior_accel_bias_sigma), np.full(3, cfg.init.prior_gyro_bias_sigma)],
+            np.r_[np.full(3, w * imu_calib.accel_random_walk), np.full(3, w * imu_calib.gyro_random_walk)])
+        self.bridged = 0          # keyframe intervals bridged across IMU gaps
+        self.divergences = 0      # soft restarts after a divergence
+        self.t_start: int | None = None
         self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
         self.td0 = 0.0  # residual td prior mean (the sync layer applies td0_s)
         self.td_applied_s = td0_s
@@ -131,14 +142,18 @@ class Estimator:
                       self.td0 if td_s is None else td_s, None)
 
     def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
-                 pose_sigmas: np.ndarray | None) -> None:
-        """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td."""
+                 pose_sigmas: np.ndarray | None, vel_sigma: float | None = None) -> None:
+        """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td
+        (``vel_sigma`` m/s: the velocity prior's, default ``InitConfig.prior_vel_sigma``)."""
         self.smoother = self._new_smoother()
+        self.t_start = state.t_ns if self.t_start is None else self.t_start
+        self._bridge_t = None
+        self.health.reset(state.t_ns, state.bias)
         self.k = k
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
         self.rates.reset_to(k)
-        g = graph.state_priors(k, state, self.cfg.init, pose_sigmas)
+        g = graph.state_priors(k, state, self.cfg.init, pose_sigmas, vel_sigma)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
         v = gtsam.Values()
         v.insert(X(k), state.T_w_b)
@@ -156,13 +171,27 @@ class Estimator:
         return self.smoother is not None
 
     # --------------------------------------------------------------- per frame
-    def add_imu(self, seg: ImuData, ahead: ImuData | None = None) -> None:
+    def add_imu(self, seg: ImuData, ahead: ImuData | None = None, gap: bool = False) -> None:
         """Preintegrate a packet's IMU segment (since the previous frame); ``ahead``:
-        samples past the frame, kept for the td term only (``vio.sync`` lookahead)."""
-        integrate(self.pim, seg)
+        samples past the frame, kept for the td term only (``vio.sync`` lookahead).
+        ``gap``: the segment touches an IMU gap (``FramePacket.imu_gaps``): nothing is
+        preintegrated across it; the whole interval since the last keyframe becomes a
+        bridge (``BridgeConfig``: constant velocity and attitude with growing sigmas, bias
+        random walk) until the next keyframe, after which IMU factors resume."""
         self.rates.add_imu(seg)
         if ahead is not None:
             self.rates.add_imu(ahead)
+        if gap and self._bridge_t is None:
+            self.pim = gtsam.PreintegratedCombinedMeasurements(self.bridge_params, self.latest()[2])
+            self._bridge_t = self.kf_t[self.k]
+        if self._bridge_t is None:
+            integrate(self.pim, seg)
+            return
+        T, _, b = self.latest()
+        t1 = int(seg.t_ns[-1])
+        integrate_still(self.pim, T.rotation(), b, self.cfg.imu.gravity, (t1 - self._bridge_t) * 1e-9,
+                        self.cfg.bridge.step_s)
+        self._bridge_t = max(self._bridge_t, t1)
 
     def latest(self) -> tuple[gtsam.Pose3, np.ndarray, gtsam.imuBias.ConstantBias]:
         """Estimate of the newest keyframe."""
@@ -185,7 +214,13 @@ class Estimator:
         _, _, b0 = self.latest()
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        g.add(graph.imu_factor(k0, k1, self.pim))
+        f_imu = graph.imu_factor(k0, k1, self.pim)
+        g.add(f_imu)
+        if self._bridge_t is not None:
+            self.bridged += 1
+            log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
+                     t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
+            self._bridge_t = None
         if still:
             g.add(graph.zero_velocity(k1, self.cfg.init.zupt_sigma))
             self.still_kf.add(k1)
@@ -215,6 +250,8 @@ class Estimator:
             self.still_kf.discard(k)
             self.rates.drop(k)
         n_removed = 0 if recovered else self._remove_outliers()
+        if not recovered and self.k == k1:
+            self._check_health(t_ns, n_removed, f_imu)
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
@@ -265,6 +302,32 @@ class Estimator:
             log.error("recovery restart refused by the solver; restarting with loose priors")
             state = InitialState(t_ns, T, np.zeros(3), gtsam.imuBias.ConstantBias(), "recovery")
             self._restart(k1, state, self.cam.T_b_c, self.td0, np.full(6, 0.1))
+
+    def _check_health(self, t_ns: int, n_removed: int, f_imu: gtsam.NonlinearFactor) -> None:
+        """Soft restart (``vio.backend.health``) when the newest state is divergent: the
+        current pose kept (no jump), velocity and bias of the last healthy keyframe."""
+        T, v, b = self.latest()
+        chi2 = 2.0 * f_imu.error(self.values) if self.values.exists(X(self.k - 1)) else 0.0
+        reason = self.health.check(t_ns, v, b, self.lm.n_active(), n_removed, chi2)
+        if reason is None:
+            return
+        self.divergences += 1
+        fb = self.health.fallback()
+        v0, b0 = fb if fb is not None else (np.zeros(3), gtsam.imuBias.ConstantBias())
+        log.warning("t=%d ns (%.3f s after the start): divergence at keyframe %d (%s): soft "
+                    "restart at the current pose with the velocity and bias of the last healthy "
+                    "keyframe (restart #%d)", t_ns, (t_ns - (self.t_start or t_ns)) * 1e-9, self.k,
+                    reason, self.divergences)
+        if not np.all(np.isfinite(T.matrix())):
+            T = self.values.atPose3(X(min(self.kf_t)))
+        T_b_c = self.values.atPose3(graph.EXTRINSIC)
+        td = float(self.values.atVector(graph.TD)[0])
+        self.lm.reset()
+        for src in self.sources:
+            src.reset()
+        state = InitialState(t_ns, T, v0, b0, "restart")
+        self._restart(self.k, state, T_b_c, td, np.array([0.01, 0.01, 0.01, 0.01, 0.01, 0.01]),
+                      self.cfg.health.restart_vel_sigma)
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
