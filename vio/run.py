@@ -33,6 +33,10 @@ class RunResult:
     wall_s: float = 0.0
     data_s: float = 0.0
     recoveries: int = 0
+    restarts: int = 0
+    imu_gaps: int = 0
+    imu_gap_s: float = 0.0
+    imu_dropped: int = 0
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
 
@@ -180,13 +184,19 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
     res.keyframes = pipe.n_keyframes
     res.recoveries = pipe.est.recoveries
+    res.restarts = pipe.est.divergences
+    res.imu_gaps = len(pipe.imu_gaps)
+    res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
+    res.imu_dropped = pipe.imu_dropped
     return res
 
 
 def summary(res: RunResult, data: EurocDataset) -> list[str]:
     """Human-readable summary lines (ATE when ground truth is present)."""
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
-             f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"]
+             f"{res.keyframes} keyframes, {res.recoveries} solver recoveries",
+             f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
+             f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"]
     if res.outputs:
         ms = np.array([o.seconds for o in res.outputs]) * 1e3
         rtf = res.data_s / res.wall_s if res.wall_s > 0 else float("inf")

@@ -12,6 +12,7 @@ the smoother's marginal prior.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -20,7 +21,7 @@ import gtsam
 import numpy as np
 
 from vio.backend import graph
-from vio.backend.config import BackendConfig
+from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.tracks import LandmarkManager
@@ -142,9 +143,9 @@ class Estimator:
                       self.td0 if td_s is None else td_s, None)
 
     def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
-                 pose_sigmas: np.ndarray | None, vel_sigma: float | None = None) -> None:
+                 pose_sigmas: np.ndarray | None, init: InitConfig | None = None) -> None:
         """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td
-        (``vel_sigma`` m/s: the velocity prior's, default ``InitConfig.prior_vel_sigma``)."""
+        (``init``: the prior sigmas, default ``cfg.init``)."""
         self.smoother = self._new_smoother()
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
@@ -153,7 +154,7 @@ class Estimator:
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
         self.rates.reset_to(k)
-        g = graph.state_priors(k, state, self.cfg.init, pose_sigmas, vel_sigma)
+        g = graph.state_priors(k, state, self.cfg.init if init is None else init, pose_sigmas)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
         v = gtsam.Values()
         v.insert(X(k), state.T_w_b)
@@ -303,31 +304,40 @@ class Estimator:
             state = InitialState(t_ns, T, np.zeros(3), gtsam.imuBias.ConstantBias(), "recovery")
             self._restart(k1, state, self.cam.T_b_c, self.td0, np.full(6, 0.1))
 
-    def _check_health(self, t_ns: int, n_removed: int, f_imu: gtsam.NonlinearFactor) -> None:
+    def _check_health(self, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor) -> None:
         """Soft restart (``vio.backend.health``) when the newest state is divergent: the
-        current pose kept (no jump), velocity and bias of the last healthy keyframe."""
+        current position kept (no jump), attitude, velocity and bias from the last healthy
+        keyframe propagated with the IMU."""
         T, v, b = self.latest()
         chi2 = 2.0 * f_imu.error(self.values) if self.values.exists(X(self.k - 1)) else 0.0
-        reason = self.health.check(t_ns, v, b, self.lm.n_active(), n_removed, chi2)
+        T_b_c = self.values.atPose3(graph.EXTRINSIC)
+        td = float(self.values.atVector(graph.TD)[0])
+        reason = self.health.check(t_ns, T, v, b, self.pim, self.lm.n_active(), n_removed, chi2,
+                                   (T_b_c, td))
         if reason is None:
             return
         self.divergences += 1
-        fb = self.health.fallback()
-        v0, b0 = fb if fb is not None else (np.zeros(3), gtsam.imuBias.ConstantBias())
         log.warning("t=%d ns (%.3f s after the start): divergence at keyframe %d (%s): soft "
-                    "restart at the current pose with the velocity and bias of the last healthy "
-                    "keyframe (restart #%d)", t_ns, (t_ns - (self.t_start or t_ns)) * 1e-9, self.k,
-                    reason, self.divergences)
-        if not np.all(np.isfinite(T.matrix())):
-            T = self.values.atPose3(X(min(self.kf_t)))
-        T_b_c = self.values.atPose3(graph.EXTRINSIC)
-        td = float(self.values.atVector(graph.TD)[0])
+                    "restart at the current position, attitude and velocity of the last healthy "
+                    "keyframe propagated by the IMU (restart #%d)", t_ns,
+                    (t_ns - (self.t_start or t_ns)) * 1e-9, self.k, reason, self.divergences)
+        fb = self.health.fallback()
+        if fb is None:
+            nav, b0 = gtsam.NavState(T, np.zeros(3)), gtsam.imuBias.ConstantBias()
+            T_b_c, td = self.cam.T_b_c, self.td0
+        else:
+            nav, b0, (T_b_c, td) = fb
+        p = T.translation() if np.all(np.isfinite(T.translation())) else nav.position()
         self.lm.reset()
         for src in self.sources:
             src.reset()
-        state = InitialState(t_ns, T, v0, b0, "restart")
-        self._restart(self.k, state, T_b_c, td, np.array([0.01, 0.01, 0.01, 0.01, 0.01, 0.01]),
-                      self.cfg.health.restart_vel_sigma)
+        state = InitialState(t_ns, gtsam.Pose3(nav.attitude(), p), nav.velocity(), b0, "restart")
+        h = self.cfg.health
+        init = dataclasses.replace(self.cfg.init, prior_rp_sigma=h.restart_rp_sigma,
+                                   prior_vel_sigma=h.restart_vel_sigma,
+                                   prior_accel_bias_sigma=h.restart_accel_bias_sigma,
+                                   prior_gyro_bias_sigma=h.restart_gyro_bias_sigma)
+        self._restart(self.k, state, T_b_c, td, None, init)
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
