@@ -133,6 +133,7 @@ class Pipeline:
         every frame of the aligned window (replayed through the estimator)."""
         t0 = time.perf_counter()
         ic = self.cfg.backend.init
+        self._count_faults(pkt)
         self._recent.append(pkt)
         while len(self._recent) > 1 and (pkt.t_ns - self._recent[0].t_ns) * 1e-9 > ic.static_window_s:
             self._recent.popleft()
@@ -142,7 +143,6 @@ class Pipeline:
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
-        self._count_faults(pkt)
         self.est.add_imu(pkt.imu, pkt.imu_ahead, gap=bool(pkt.imu_gaps))
         still = self._still()
         # the IMU resumed in this packet: a keyframe here ends the bridge, the next interval
@@ -156,7 +156,7 @@ class Pipeline:
         return self._emit(pkt, False, still, t0)
 
     def _count_faults(self, pkt: FramePacket) -> None:
-        """IMU gaps (distinct) and dropped samples met by the estimator (``vio.faults``)."""
+        """Count the IMU gaps (distinct) and dropped samples of a packet (``vio.faults``)."""
         self.imu_dropped += pkt.imu_dropped
         for g in pkt.imu_gaps:
             self.imu_gaps.add(g)
