@@ -136,6 +136,16 @@ def test_dropped_samples_are_counted_in_the_packet_that_covers_them():
     assert sync.poll().status is SyncStatus.READY
 
 
+@pytest.mark.parametrize("parts", [("euroc_V1_01_30s_features",), ("euroc_MH_05_mono_15s",),
+                                   ("euroc_imu_gt", "MH_03_medium"), ("euroc_imu_gt", "MH_04_difficult")])
+def test_screen_never_fires_on_clean_real_imu(parts):
+    """Real flights, including the Machine Hall landings (37 m/s^2 swings): nothing flagged."""
+    from vio.io.euroc import read_imu_csv
+    imu = read_imu_csv(shared(*parts, "mav0", "imu0", "data.csv"))
+    _, gaps, n = screen_imu(imu)
+    assert n == 0 and gaps == []
+
+
 # ------------------------------------------------------------------ bridge and health (units)
 def test_bridge_is_a_constant_velocity_prior_whose_sigmas_grow_with_the_gap():
     calib = ImuCalib(1.7e-4, 2e-5, 2e-3, 3e-3)
