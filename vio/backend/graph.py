@@ -34,8 +34,7 @@ TD = D(0)
 
 
 def state_priors(k: int, state: InitialState, cfg: InitConfig,
-                 pose_sigmas: np.ndarray | None = None,
-                 vel_sigma: float | None = None) -> gtsam.NonlinearFactorGraph:
+                 pose_sigmas: np.ndarray | None = None) -> gtsam.NonlinearFactorGraph:
     """Priors on the first keyframe (or on the restart keyframe after recovery).
 
     Default pose prior: roll/pitch ``prior_rp_sigma`` and yaw ``prior_yaw_sigma`` (rad)
@@ -44,8 +43,7 @@ def state_priors(k: int, state: InitialState, cfg: InitConfig,
     pin the wrong axis: EuRoC's IMU x axis points up, so body "yaw" is a tilt, and the
     start's tilt error (accel bias not yet separable from gravity) stayed locked in.
     ``pose_sigmas`` (6,): isotropic-per-block body-frame sigmas instead (recovery).
-    Velocity (m/s, ``vel_sigma``, default ``prior_vel_sigma``) and bias [accel m/s^2, gyro
-    rad/s] priors are diagonal.
+    Velocity (m/s) and bias [accel m/s^2, gyro rad/s] priors are diagonal.
     """
     g = gtsam.NonlinearFactorGraph()
     if pose_sigmas is None:
@@ -58,8 +56,7 @@ def state_priors(k: int, state: InitialState, cfg: InitConfig,
         pose_noise = gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)
     g.add(gtsam.PriorFactorPose3(X(k), state.T_w_b, pose_noise))
     g.add(gtsam.PriorFactorVector(V(k), state.v_w,
-                                  gtsam.noiseModel.Isotropic.Sigma(
-                                      3, cfg.prior_vel_sigma if vel_sigma is None else vel_sigma)))
+                                  gtsam.noiseModel.Isotropic.Sigma(3, cfg.prior_vel_sigma)))
     bias_sigmas = np.r_[np.full(3, cfg.prior_accel_bias_sigma), np.full(3, cfg.prior_gyro_bias_sigma)]
     g.add(gtsam.PriorFactorConstantBias(B(k), state.bias,
                                         gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
