@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import shared
+from vio.faults import ImuScreen, ImuScreenConfig
 from vio.imu import integrate
 from vio.io.euroc import load_euroc
 from vio.io.types import ImuData
@@ -60,7 +61,8 @@ def test_push_api_waiting_then_ready_and_dropped():
 def test_lookahead_waits_for_imu_past_the_frame_and_serves_it():
     imu = _imu(40)
     dt = int(imu.t_ns[1] - imu.t_ns[0])
-    sync = Synchronizer(lookahead_s=2.5 * dt * 1e-9)
+    # the fault screen's own delay (3 samples) would exceed this lookahead: off here
+    sync = Synchronizer(lookahead_s=2.5 * dt * 1e-9, screen=ImuScreen(ImuScreenConfig(enabled=False)))
     sync.add_frame(int(imu.t_ns[10]))
     sync.add_frame(int(imu.t_ns[38]))
     for k in range(13):                               # up to t10 + 2 dt: not enough

@@ -134,7 +134,8 @@ def _run(job: Job) -> dict:
     cfg = load_config(Path(job.config) if job.config else None, data.td_s, mode)
     res = run_dataset(data, cfg, d.get("max_frames"), mode=mode)
     out = {"mode": mode, "frames_in": res.frames_in, "frames_out": len(res.outputs),
-           "keyframes": res.keyframes, "restarts": res.recoveries, "wall_s": res.wall_s}
+           "keyframes": res.keyframes, "restarts": res.restarts, "solver_recoveries": res.recoveries,
+           "wall_s": res.wall_s}
     if not res.outputs:
         raise RuntimeError(f"no estimate: the pipeline never initialized over {res.frames_in} frames")
     t, p, q = res.arrays()

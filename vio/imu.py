@@ -42,6 +42,32 @@ def combined_params(calib: ImuCalib, cfg: ImuNoiseConfig = ImuNoiseConfig()
     return p
 
 
+def bridge_params(calib: ImuCalib, cfg: ImuNoiseConfig, accel_density: float,
+                  gyro_density: float) -> gtsam.PreintegrationCombinedParams:
+    """Parameters of the IMU-gap bridge (:func:`integrate_still`): the sensor's bias random
+    walks, but white acceleration ``accel_density`` (m/s^2/sqrt(Hz)) and rotation rate
+    ``gyro_density`` (rad/s/sqrt(Hz)) in place of the measurement noise."""
+    p = combined_params(calib, cfg)
+    p.setGyroscopeCovariance(gyro_density ** 2 * np.eye(3))
+    p.setAccelerometerCovariance(accel_density ** 2 * np.eye(3))
+    return p
+
+
+def integrate_still(pim, R_w_b: gtsam.Rot3, bias: gtsam.imuBias.ConstantBias, gravity: float,
+                    dt_s: float, step_s: float) -> None:
+    """Integrate ``dt_s`` seconds of the readings of a body moving at constant velocity and
+    attitude ``R_w_b`` (specific force ``R^T [0, 0, g]`` and zero rate, plus ``bias`` as a
+    real sensor would add): with :func:`bridge_params` the preintegrated factor is a
+    constant-velocity prior whose sigmas grow with ``dt_s``."""
+    f = R_w_b.unrotate(np.array([0.0, 0.0, gravity])) + bias.accelerometer()
+    w = np.asarray(bias.gyroscope(), float)
+    n = max(int(np.ceil(dt_s / step_s - 1e-9)), 1)
+    if dt_s <= 0:
+        return
+    for _ in range(n):
+        pim.integrateMeasurement(f, w, dt_s / n)
+
+
 def integrate(pim, imu: ImuData) -> None:
     """Integrate a segment whose samples include both interval endpoints.
 

@@ -21,6 +21,7 @@ from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
 from vio.backend.stereo_init import stereo_align
 from vio.direct.config import DirectConfig
+from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
@@ -38,10 +39,12 @@ class PipelineConfig:
     return freed heap memory to the OS every so many seconds of data (0: never; see
     ``vio.memory``), which keeps the resident size of long runs flat.
     ``imu_lookahead_s``: IMU the sync layer serves past each frame (s): the td term
-    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency."""
+    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency.
+    ``imu_screen``: IMU fault screening and gap detection in the sync layer (``vio.faults``)."""
 
     td_s: float = 0.0
     imu_lookahead_s: float = 0.02
+    imu_screen: ImuScreenConfig = field(default_factory=ImuScreenConfig)
     trim_heap_every_s: float = 60.0
     backend: BackendConfig = field(default_factory=BackendConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
@@ -103,6 +106,8 @@ class Pipeline:
         self._t_first: int | None = None
         self._next_try: int | None = None
         self.init_info: InitInfo | None = None
+        self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
+        self.imu_dropped = 0
 
     # -------------------------------------------------------------- helpers
     def _window_imu(self):
@@ -126,6 +131,8 @@ class Pipeline:
 
     def _still(self) -> bool:
         ic = self.cfg.backend.init
+        if any(p.imu_gaps for p in self._recent):   # interpolated across a gap: looks still
+            return False
         imu, span = self._window_imu()
         if span < 0.8 * ic.static_window_s:
             return False
@@ -142,6 +149,7 @@ class Pipeline:
         every frame of the aligned window (replayed through the estimator)."""
         t0 = time.perf_counter()
         ic = self.cfg.backend.init
+        self._count_faults(pkt)
         self._recent.append(pkt)
         while len(self._recent) > 1 and (pkt.t_ns - self._recent[0].t_ns) * 1e-9 > ic.static_window_s:
             self._recent.popleft()
@@ -151,14 +159,23 @@ class Pipeline:
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
-        self.est.add_imu(pkt.imu, pkt.imu_ahead)
+        self.est.add_imu(pkt.imu, pkt.imu_ahead, gap=bool(pkt.imu_gaps))
         still = self._still()
-        if self._is_keyframe(pkt):
+        # the IMU resumed in this packet: a keyframe here ends the bridge, the next interval
+        # gets an IMU factor again
+        resumed = any(end <= pkt.t_ns for _, end in pkt.imu_gaps)
+        if resumed or self._is_keyframe(pkt):
             self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
             self._kf_features, self._kf_t = pkt.features, pkt.t_ns
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0)
         return self._emit(pkt, False, still, t0)
+
+    def _count_faults(self, pkt: FramePacket) -> None:
+        """Count the IMU gaps (distinct) and dropped samples of a packet (``vio.faults``)."""
+        self.imu_dropped += pkt.imu_dropped
+        for g in pkt.imu_gaps:
+            self.imu_gaps.add(g)
 
     def _maybe_trim(self, t_ns: int) -> None:
         every = self.cfg.trim_heap_every_s

@@ -34,6 +34,10 @@ class RunResult:
     wall_s: float = 0.0
     data_s: float = 0.0
     recoveries: int = 0
+    restarts: int = 0
+    imu_gaps: int = 0
+    imu_gap_s: float = 0.0
+    imu_dropped: int = 0
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
     init: InitInfo | None = None
@@ -125,12 +129,14 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
                    pipe: Pipeline) -> tuple[Iterator[FramePacket], Callable | None]:
     """The packets of a run and the stage applied to each in this process (None when
     there is none, or when the KLT front end runs in a worker process, ``vio.overlap``)."""
+    ic = data.imu_calib
+    screen = dict(lookahead_s=cfg.imu_lookahead_s, screen=cfg.imu_screen, rate_hz=ic.rate_hz,
+                  accel_range=ic.accel_range, gyro_range=ic.gyro_range)
     if mode == "features":
-        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)],
-                       lookahead_s=cfg.imu_lookahead_s), None
+        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)], **screen), None
     stereo = mode in STEREO_MODES
     it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
-                 lookahead_s=cfg.imu_lookahead_s)
+                 **screen)
     if mode in ("direct", "hybrid"):
         from vio.direct.mode import attach
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid")
@@ -181,13 +187,19 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     res.keyframes = pipe.n_keyframes
     res.recoveries = pipe.est.recoveries
     res.init = pipe.init_info
+    res.restarts = pipe.est.divergences
+    res.imu_gaps = len(pipe.imu_gaps)
+    res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
+    res.imu_dropped = pipe.imu_dropped
     return res
 
 
 def summary(res: RunResult, data: EurocDataset) -> list[str]:
     """Human-readable summary lines (ATE when ground truth is present)."""
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
-             f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"]
+             f"{res.keyframes} keyframes, {res.recoveries} solver recoveries",
+             f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
+             f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"]
     if res.init is None:
         lines.append("initialization  not reached")
     else:

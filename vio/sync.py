@@ -19,11 +19,21 @@ Push API (live feeds): ``add_imu`` / ``add_frame`` in any interleaving, then
 frame) or ``DROPPED`` (the frame can never be served: it precedes the IMU stream,
 or the IMU stream was closed before reaching it). ``packets(dataset)`` iterates
 a whole dataset through the same code path.
+
+IMU faults (``vio.faults``): every sample passes the screen before it is buffered;
+impossible ones are dropped (so the interpolation between their neighbours stands in
+for them) and counted in the packet that covers them (``imu_dropped``). A frame waits
+for the screen's delay (``half_window`` samples) past it, like the lookahead. A packet
+whose interval touches a gap (accepted samples further apart than ``max_gap_periods``
+nominal periods) lists it in ``imu_gaps``: its ``imu`` is then interpolated across the
+gap and must not be preintegrated (``vio.backend.estimator`` bridges it).
 """
 
 from __future__ import annotations
 
 import enum
+import logging
+import math
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +41,10 @@ from typing import Iterator
 
 import numpy as np
 
+from vio.faults import ImuScreen, ImuScreenConfig
 from vio.io.types import FeatureFrame, ImuData
+
+log = logging.getLogger(__name__)
 
 
 class SyncStatus(enum.Enum):
@@ -50,7 +63,10 @@ class FramePacket:
     sample at ``t_ns``), endpoints interpolated. ``imu_ahead``: samples on
     ``[t_ns, t_ns + lookahead]`` (see the module docstring). ``features``: observations
     (feature-track datasets, or a front end's output); ``image_files`` /
-    ``images``: per-camera files or arrays (cam0 first).
+    ``images``: per-camera files or arrays (cam0 first). ``imu_gaps``: (last sample
+    before, first sample after) in ns of each IMU gap the interval ``[t_prev, t_ns]``
+    overlaps (``imu`` is not to be preintegrated then); ``imu_dropped``: impossible
+    samples dropped in that interval (``vio.faults``).
     """
 
     index: int
@@ -61,6 +77,8 @@ class FramePacket:
     image_files: tuple[Path, ...] = ()
     images: tuple[np.ndarray, ...] = ()
     imu_ahead: ImuData | None = None
+    imu_gaps: tuple[tuple[int, int], ...] = ()
+    imu_dropped: int = 0
 
     @property
     def dt_s(self) -> float:
@@ -85,13 +103,17 @@ class _Frame:
 
 class Synchronizer:
     """Push-style synchronizer. ``td_s``: constant camera-to-IMU time offset (s);
-    ``lookahead_s``: IMU served past each frame (s, see the module docstring)."""
+    ``lookahead_s``: IMU served past each frame (s, see the module docstring);
+    ``screen``: the IMU fault screen (default: ``ImuScreenConfig()`` at 200 Hz)."""
 
-    def __init__(self, td_s: float = 0.0, lookahead_s: float = 0.0) -> None:
+    def __init__(self, td_s: float = 0.0, lookahead_s: float = 0.0,
+                 screen: ImuScreen | None = None) -> None:
         if not (np.isfinite(lookahead_s) and lookahead_s >= 0):
             raise ValueError(f"lookahead_s must be >= 0, got {lookahead_s}")
         self.td_ns = int(round(td_s * 1e9))
         self.ahead_ns = int(round(lookahead_s * 1e9))
+        self.screen = ImuScreen() if screen is None else screen
+        self._gaps_logged: set[tuple[int, int]] = set()
         self._t = np.zeros(0, dtype=np.int64)   # buffered IMU samples (consolidated)
         self._w = np.zeros((0, 3))
         self._a = np.zeros((0, 3))
@@ -121,11 +143,15 @@ class Synchronizer:
         self._t_last_imu = int(imu.t_ns[-1])
 
     def _consolidate(self) -> None:
-        if self._pending:
-            self._t = np.concatenate([self._t] + [p.t_ns for p in self._pending])
-            self._w = np.concatenate([self._w] + [p.gyro for p in self._pending])
-            self._a = np.concatenate([self._a] + [p.accel for p in self._pending])
-            self._pending = []
+        """Screen the new samples (``vio.faults``) and buffer the accepted ones."""
+        for p in self._pending:
+            self.screen.push(p)
+        self._pending = []
+        ok = self.screen.pop(self._closed)
+        if len(ok):
+            self._t = np.concatenate([self._t, ok.t_ns])
+            self._w = np.concatenate([self._w, ok.gyro])
+            self._a = np.concatenate([self._a, ok.accel])
 
     def add_frame(self, stamp_ns: int, features: FeatureFrame | None = None,
                   image_files: tuple[Path, ...] = (), images: tuple[np.ndarray, ...] = ()) -> None:
@@ -163,9 +189,10 @@ class Synchronizer:
         seg = self._segment(t0, t)
         ahead = self._segment(t, min(t + self.ahead_ns, int(self._t[-1]))) if self.ahead_ns else None
         self._last_t = t
+        gaps = self._gaps(t0, t)
         self._trim(t0)
         pkt = FramePacket(self._index, t, fr.stamp_ns, seg, fr.features, fr.image_files, fr.images,
-                          ahead)
+                          ahead, gaps, self._take_dropped(t))
         self._index += 1
         return SyncResult(SyncStatus.READY, pkt)
 
@@ -182,6 +209,26 @@ class Synchronizer:
         acc = np.stack([np.interp(sf, tf, a[:, k]) for k in range(3)], axis=1)
         return ImuData(stamps.astype(np.int64), gyro, acc)
 
+    def _gaps(self, t0: int, t1: int) -> tuple[tuple[int, int], ...]:
+        """The IMU gaps overlapping [t0, t1] (each logged once)."""
+        i0 = max(int(np.searchsorted(self._t, t0, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(self._t, t1, side="left")) + 1
+        gaps = tuple(self.screen.gaps(self._t[i0:i1]))
+        for g in gaps:
+            if g not in self._gaps_logged:
+                self._gaps_logged.add(g)
+                log.warning("t=%d ns (%.3f s into the run): IMU gap of %.3f s (no sample until "
+                            "t=%d ns): not preintegrated; bridged with vision and a motion prior",
+                            g[0], self.screen.seconds(g[0]), (g[1] - g[0]) * 1e-9, g[1])
+        return gaps
+
+    def _take_dropped(self, t: int) -> int:
+        """How many dropped samples precede ``t`` since the last packet (forgotten then)."""
+        d = self.screen.dropped
+        n = int(np.searchsorted(np.asarray(d, np.int64), t, side="right")) if d else 0
+        del d[:n]
+        return n
+
     def _trim(self, t_keep: int) -> None:
         """Forget samples no longer needed (keep the one bracketing ``t_keep``)."""
         i = int(np.searchsorted(self._t, t_keep, side="right")) - 1
@@ -192,12 +239,21 @@ class Synchronizer:
 def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
             features: list[FeatureFrame] | None = None,
             image_files: list[tuple[Path, ...]] | None = None,
-            lookahead_s: float = 0.0) -> Iterator[FramePacket]:
+            lookahead_s: float = 0.0, screen: ImuScreenConfig = ImuScreenConfig(),
+            rate_hz: float | None = None, accel_range: float = math.inf,
+            gyro_range: float = math.inf) -> Iterator[FramePacket]:
     """Iterate a recorded dataset as packets (dropped frames are skipped).
 
-    ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``.
+    ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``. ``screen``,
+    ``rate_hz`` (nominal IMU rate, ``sensor.yaml``), ``accel_range`` / ``gyro_range``:
+    the IMU fault screen (``vio.faults``). The nominal period used for gaps is the
+    longer of ``1/rate_hz`` and the recording's median sample interval (a mislabelled
+    rate must not turn every interval into a gap).
     """
-    sync = Synchronizer(td_s, lookahead_s)
+    period = float(np.median(np.diff(imu.t_ns))) * 1e-9 if len(imu) > 1 else 0.0
+    rates = [r for r in (rate_hz, 1.0 / period if period > 0 else None) if r]
+    rate = min(rates) if rates else 200.0
+    sync = Synchronizer(td_s, lookahead_s, ImuScreen(screen, rate, accel_range, gyro_range))
     sync.add_imu_block(imu)
     sync.close()
     for k, stamp in enumerate(frame_stamps):

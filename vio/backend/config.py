@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from vio.backend.health import BridgeConfig, HealthConfig
 from vio.imu import ImuNoiseConfig
 
 
@@ -216,3 +217,5 @@ class BackendConfig:
     vision: VisionConfig = field(default_factory=VisionConfig)
     calib: CalibConfig = field(default_factory=CalibConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)

@@ -12,6 +12,7 @@ the smoother's marginal prior.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -20,10 +21,11 @@ import gtsam
 import numpy as np
 
 from vio.backend import graph
-from vio.backend.config import BackendConfig
+from vio.backend.config import BackendConfig, InitConfig
+from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.tracks import LandmarkManager
-from vio.imu import KeyframeRates, combined_params, integrate
+from vio.imu import KeyframeRates, bridge_params, combined_params, integrate, integrate_still
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 
 log = logging.getLogger(__name__)
@@ -93,6 +95,16 @@ class Estimator:
         self.T_c0_c1 = cam.T_b_c.between(cam1.T_b_c) if cam1 is not None else None
         self.C_stereo = cam1.T_b_c.compose(cam.T_b_c.inverse()) if cam1 is not None else None
         self.params = combined_params(imu_calib, cfg.imu)
+        self.bridge_params = bridge_params(imu_calib, cfg.imu, cfg.bridge.accel_density,
+                                           cfg.bridge.gyro_density)
+        self._bridge_t: int | None = None   # bridging an IMU gap: synthetic readings up to here
+        w = cfg.imu.scale_walk
+        self.health = HealthMonitor(
+            cfg.health, np.r_[np.full(3, cfg.init.prior_accel_bias_sigma), np.full(3, cfg.init.prior_gyro_bias_sigma)],
+            np.r_[np.full(3, w * imu_calib.accel_random_walk), np.full(3, w * imu_calib.gyro_random_walk)])
+        self.bridged = 0          # keyframe intervals bridged across IMU gaps
+        self.divergences = 0      # soft restarts after a divergence
+        self.t_start: int | None = None
         self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
         self.td0 = 0.0  # residual td prior mean (the sync layer applies td0_s)
         self.td_applied_s = td0_s
@@ -131,14 +143,18 @@ class Estimator:
                       self.td0 if td_s is None else td_s, None)
 
     def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
-                 pose_sigmas: np.ndarray | None) -> None:
-        """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td."""
+                 pose_sigmas: np.ndarray | None, init: InitConfig | None = None) -> None:
+        """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td
+        (``init``: the prior sigmas, default ``cfg.init``)."""
         self.smoother = self._new_smoother()
+        self.t_start = state.t_ns if self.t_start is None else self.t_start
+        self._bridge_t = None
+        self.health.reset(state.t_ns, state.bias)
         self.k = k
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
         self.rates.reset_to(k)
-        g = graph.state_priors(k, state, self.cfg.init, pose_sigmas)
+        g = graph.state_priors(k, state, self.cfg.init if init is None else init, pose_sigmas)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
         v = gtsam.Values()
         v.insert(X(k), state.T_w_b)
@@ -156,13 +172,27 @@ class Estimator:
         return self.smoother is not None
 
     # --------------------------------------------------------------- per frame
-    def add_imu(self, seg: ImuData, ahead: ImuData | None = None) -> None:
+    def add_imu(self, seg: ImuData, ahead: ImuData | None = None, gap: bool = False) -> None:
         """Preintegrate a packet's IMU segment (since the previous frame); ``ahead``:
-        samples past the frame, kept for the td term only (``vio.sync`` lookahead)."""
-        integrate(self.pim, seg)
+        samples past the frame, kept for the td term only (``vio.sync`` lookahead).
+        ``gap``: the segment touches an IMU gap (``FramePacket.imu_gaps``): nothing is
+        preintegrated across it; the whole interval since the last keyframe becomes a
+        bridge (``BridgeConfig``: constant velocity and attitude with growing sigmas, bias
+        random walk) until the next keyframe, after which IMU factors resume."""
         self.rates.add_imu(seg)
         if ahead is not None:
             self.rates.add_imu(ahead)
+        if gap and self._bridge_t is None:
+            self.pim = gtsam.PreintegratedCombinedMeasurements(self.bridge_params, self.latest()[2])
+            self._bridge_t = self.kf_t[self.k]
+        if self._bridge_t is None:
+            integrate(self.pim, seg)
+            return
+        T, _, b = self.latest()
+        t1 = int(seg.t_ns[-1])
+        integrate_still(self.pim, T.rotation(), b, self.cfg.imu.gravity, (t1 - self._bridge_t) * 1e-9,
+                        self.cfg.bridge.step_s)
+        self._bridge_t = max(self._bridge_t, t1)
 
     def latest(self) -> tuple[gtsam.Pose3, np.ndarray, gtsam.imuBias.ConstantBias]:
         """Estimate of the newest keyframe."""
@@ -185,7 +215,13 @@ class Estimator:
         _, _, b0 = self.latest()
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        g.add(graph.imu_factor(k0, k1, self.pim))
+        f_imu = graph.imu_factor(k0, k1, self.pim)
+        g.add(f_imu)
+        if self._bridge_t is not None:
+            self.bridged += 1
+            log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
+                     t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
+            self._bridge_t = None
         if still:
             g.add(graph.zero_velocity(k1, self.cfg.init.zupt_sigma))
             self.still_kf.add(k1)
@@ -215,6 +251,8 @@ class Estimator:
             self.still_kf.discard(k)
             self.rates.drop(k)
         n_removed = 0 if recovered else self._remove_outliers()
+        if not recovered and self.k == k1:
+            self._check_health(t_ns, n_removed, f_imu)
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
@@ -265,6 +303,41 @@ class Estimator:
             log.error("recovery restart refused by the solver; restarting with loose priors")
             state = InitialState(t_ns, T, np.zeros(3), gtsam.imuBias.ConstantBias(), "recovery")
             self._restart(k1, state, self.cam.T_b_c, self.td0, np.full(6, 0.1))
+
+    def _check_health(self, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor) -> None:
+        """Soft restart (``vio.backend.health``) when the newest state is divergent: the
+        current position kept (no jump), attitude, velocity and bias from the last healthy
+        keyframe propagated with the IMU."""
+        T, v, b = self.latest()
+        chi2 = 2.0 * f_imu.error(self.values) if self.values.exists(X(self.k - 1)) else 0.0
+        T_b_c = self.values.atPose3(graph.EXTRINSIC)
+        td = float(self.values.atVector(graph.TD)[0])
+        reason = self.health.check(t_ns, T, v, b, self.pim, self.lm.n_active(), n_removed, chi2,
+                                   (T_b_c, td))
+        if reason is None:
+            return
+        self.divergences += 1
+        log.warning("t=%d ns (%.3f s after the start): divergence at keyframe %d (%s): soft "
+                    "restart at the current position, attitude and velocity of the last healthy "
+                    "keyframe propagated by the IMU (restart #%d)", t_ns,
+                    (t_ns - (self.t_start or t_ns)) * 1e-9, self.k, reason, self.divergences)
+        fb = self.health.fallback()
+        if fb is None:
+            nav, b0 = gtsam.NavState(T, np.zeros(3)), gtsam.imuBias.ConstantBias()
+            T_b_c, td = self.cam.T_b_c, self.td0
+        else:
+            nav, b0, (T_b_c, td) = fb
+        p = T.translation() if np.all(np.isfinite(T.translation())) else nav.position()
+        self.lm.reset()
+        for src in self.sources:
+            src.reset()
+        state = InitialState(t_ns, gtsam.Pose3(nav.attitude(), p), nav.velocity(), b0, "restart")
+        h = self.cfg.health
+        init = dataclasses.replace(self.cfg.init, prior_rp_sigma=h.restart_rp_sigma,
+                                   prior_vel_sigma=h.restart_vel_sigma,
+                                   prior_accel_bias_sigma=h.restart_accel_bias_sigma,
+                                   prior_gyro_bias_sigma=h.restart_gyro_bias_sigma)
+        self._restart(self.k, state, T_b_c, td, None, init)
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:

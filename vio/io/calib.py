@@ -82,7 +82,8 @@ def load_camera(path: Path, name: str = "cam0") -> CameraCalib:
 
 
 def read_imu_yaml(path: Path) -> ImuCalib:
-    """IMU noise densities and random walks from an EuRoC ``imu0/sensor.yaml``."""
+    """IMU noise densities and random walks from an EuRoC ``imu0/sensor.yaml``; optional
+    ``accelerometer_range`` (m/s^2) and ``gyroscope_range`` (rad/s) per axis."""
     data = read_yaml(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: not an IMU sensor.yaml")
@@ -97,4 +98,11 @@ def read_imu_yaml(path: Path) -> ImuCalib:
             raise ConfigError(f"{path}: {k} must be a positive number, found {v!r}")
         vals.append(float(v))
     T = _matrix4(data, "T_BS", path) if "T_BS" in data else np.eye(4)
-    return ImuCalib(*vals, rate_hz=float(data.get("rate_hz", 200.0)), T_b_s=pose_from_matrix(T))
+    ranges = []
+    for k in ("accelerometer_range", "gyroscope_range"):   # optional (not in EuRoC's files)
+        v = data.get(k, float("inf"))
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            raise ConfigError(f"{path}: {k} must be a positive number, found {v!r}")
+        ranges.append(float(v))
+    return ImuCalib(*vals, rate_hz=float(data.get("rate_hz", 200.0)), T_b_s=pose_from_matrix(T),
+                    accel_range=ranges[0], gyro_range=ranges[1])

@@ -55,7 +55,9 @@ class ImuCalib:
     """Continuous-time IMU noise parameters (EuRoC ``imu0/sensor.yaml``).
 
     Units: gyro noise rad/s/sqrt(Hz), gyro random walk rad/s^2/sqrt(Hz), accel
-    noise m/s^2/sqrt(Hz), accel random walk m/s^3/sqrt(Hz).
+    noise m/s^2/sqrt(Hz), accel random walk m/s^3/sqrt(Hz). ``accel_range`` (m/s^2) and
+    ``gyro_range`` (rad/s): per-axis measurement ranges (inf when the file gives none);
+    a reading beyond them is impossible (``vio.faults``).
     """
 
     gyro_noise_density: float
@@ -64,6 +66,8 @@ class ImuCalib:
     accel_random_walk: float
     rate_hz: float = 200.0
     T_b_s: gtsam.Pose3 = field(default_factory=gtsam.Pose3)
+    accel_range: float = float("inf")
+    gyro_range: float = float("inf")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,137 @@
+"""Fault injection on a *copy* of an EuRoC/ASL folder (fault tests and benchmarks).
+
+Every function edits the CSV text of the copy in place and never the source: rows are
+kept verbatim except the ones removed or overwritten, so a fault-free copy runs exactly
+like the original. Times are seconds relative to the first IMU sample of the source
+(``t0``); the edited stamps stay integer nanoseconds.
+
+- :func:`copy_dataset` copies a folder (optionally cut to ``[start_s, end_s]``);
+- :func:`imu_gap` removes the IMU rows of ``[t_s, t_s + dur_s)``;
+- :func:`imu_spike` overwrites the accelerometer/gyro of the row nearest ``t_s``;
+- :func:`drop_frames` removes the camera frames (and their feature rows) of a stretch.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from vio.io.euroc import find_mav0
+
+
+def _stamp(line: str) -> int | None:
+    """The leading integer stamp (ns) of a CSV data row; None for headers/blank lines."""
+    head = line.split(",", 1)[0].strip()
+    return int(head) if head.isdigit() else None
+
+
+def _edit_csv(path: Path, edit: Callable[[int, str], str | None]) -> int:
+    """Rewrite ``path`` with ``edit(stamp, line)`` applied to every data row (None:
+    remove the row); headers stay. Returns the number of rows changed or removed."""
+    if not path.is_file():
+        return 0
+    lines = path.read_text().splitlines(keepends=True)
+    out, n = [], 0
+    for line in lines:
+        t = _stamp(line)
+        new = line if t is None else edit(t, line)
+        n += new != line
+        if new is not None:
+            out.append(new)
+    path.write_text("".join(out))
+    return n
+
+
+def _t0(mav0: Path) -> int:
+    for line in (mav0 / "imu0" / "data.csv").read_text().splitlines():
+        t = _stamp(line)
+        if t is not None:
+            return t
+    raise ValueError(f"{mav0 / 'imu0' / 'data.csv'}: no data rows")
+
+
+def _csvs(mav0: Path) -> list[Path]:
+    """The time-stamped CSVs of a folder (IMU, cameras, features, ground truth)."""
+    return [p for p in mav0.rglob("*.csv") if p.parent.name in ("imu0", "cam0", "cam1",
+                                                                  "state_groundtruth_estimate0")]
+
+
+def copy_dataset(src: str | Path, dst: str | Path, start_s: float | None = None,
+                 end_s: float | None = None) -> Path:
+    """Copy the folder ``src`` to ``dst`` (replaced if present; image folders are
+    symlinked, not copied), keeping only rows with stamps in ``[start_s, end_s]`` s after
+    ``src``'s first IMU sample when given. Returns ``dst``."""
+    src_mav0, dst = find_mav0(src), Path(dst)
+    if dst.exists():
+        shutil.rmtree(dst)
+    t0 = _t0(src_mav0)
+    for p in src_mav0.rglob("*"):
+        rel = p.relative_to(src_mav0)
+        q = dst / "mav0" / rel
+        if p.is_dir():
+            if p.name == "data" and p.parent.name.startswith("cam"):
+                q.parent.mkdir(parents=True, exist_ok=True)
+                q.symlink_to(p.resolve(), target_is_directory=True)
+            continue
+        if any(part == "data" and i > 0 and rel.parts[i - 1].startswith("cam")
+               for i, part in enumerate(rel.parts[:-1])):
+            continue   # inside a symlinked image folder
+        q.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(p, q)
+    for sib in Path(src_mav0.parent).glob("*.csv") if src_mav0.name == "mav0" else []:
+        shutil.copyfile(sib, dst / sib.name)
+    if start_s is not None or end_s is not None:
+        lo = t0 + int(round((start_s or 0.0) * 1e9))
+        hi = t0 + int(round(end_s * 1e9)) if end_s is not None else np.iinfo(np.int64).max
+        for p in _csvs(dst / "mav0"):
+            _edit_csv(p, lambda t, line: line if lo <= t <= hi else None)
+    return dst
+
+
+def imu_gap(root: str | Path, t_s: float, dur_s: float, t0_ns: int | None = None) -> int:
+    """Remove the IMU rows with stamps in ``[t_s, t_s + dur_s)`` s after ``t0_ns``
+    (default: the folder's first IMU sample). Returns the number removed."""
+    mav0 = find_mav0(root)
+    t0 = _t0(mav0) if t0_ns is None else t0_ns
+    lo, hi = t0 + int(round(t_s * 1e9)), t0 + int(round((t_s + dur_s) * 1e9))
+    return _edit_csv(mav0 / "imu0" / "data.csv", lambda t, line: None if lo <= t < hi else line)
+
+
+def imu_spike(root: str | Path, t_s: float, accel: tuple[float, float, float] | None = None,
+              gyro: tuple[float, float, float] | None = None, t0_ns: int | None = None) -> int:
+    """Overwrite the accelerometer (m/s^2) and/or gyro (rad/s) reading of the IMU row
+    nearest ``t_s`` s after ``t0_ns``; returns that row's stamp (ns)."""
+    mav0 = find_mav0(root)
+    path = mav0 / "imu0" / "data.csv"
+    t0 = _t0(mav0) if t0_ns is None else t0_ns
+    stamps = np.array([t for t in map(_stamp, path.read_text().splitlines()) if t is not None])
+    target = int(stamps[np.argmin(np.abs(stamps - (t0 + int(round(t_s * 1e9)))))])
+
+    def edit(t: int, line: str) -> str:
+        if t != target:
+            return line
+        vals = line.strip().split(",")
+        if gyro is not None:
+            vals[1:4] = [repr(float(x)) for x in gyro]
+        if accel is not None:
+            vals[4:7] = [repr(float(x)) for x in accel]
+        return ",".join(vals) + "\n"
+
+    _edit_csv(path, edit)
+    return target
+
+
+def drop_frames(root: str | Path, t_s: float, dur_s: float, t0_ns: int | None = None) -> int:
+    """Remove the camera frames with stamps in ``[t_s, t_s + dur_s)`` (both cameras,
+    their feature rows too). Returns the number of cam0 frames removed."""
+    mav0 = find_mav0(root)
+    t0 = _t0(mav0) if t0_ns is None else t0_ns
+    lo, hi = t0 + int(round(t_s * 1e9)), t0 + int(round((t_s + dur_s) * 1e9))
+    keep = (lambda t, line: None if lo <= t < hi else line)
+    n = _edit_csv(mav0 / "cam0" / "data.csv", keep)
+    for p in (mav0 / "cam0" / "features.csv", mav0 / "cam1" / "data.csv"):
+        _edit_csv(p, keep)
+    return n
