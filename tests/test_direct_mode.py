@@ -141,7 +141,8 @@ def test_direct_and_hybrid_runs(sim_exposure, mode, bound):
 
 
 def test_rerun_sink_logs_direct_points(tmp_path):
-    """Keyframes log the snapshot's points in pixels, coloured by inverse depth (red near, blue far)."""
+    """Keyframes log the snapshot's points in pixels, coloured by inverse depth (magenta near,
+    cyan far); the next logged image clears them."""
     from types import SimpleNamespace
     from test_viz import read_rrd
     from vio.direct.source import PointSnapshot
@@ -155,11 +156,12 @@ def test_rerun_sink_logs_direct_points(tmp_path):
         sink.add_direct_source(lambda: snap)
         sink._log_direct(SimpleNamespace(keyframe=True))
         sink._log_direct(SimpleNamespace(keyframe=False))      # not a keyframe: nothing
+        sink._log_direct(SimpleNamespace(keyframe=False), True)   # a new image: cleared
     rows = read_rrd(tmp_path / "d.rrd")["world/body/cam0/image/direct_points"]
-    assert len(rows) == 1
+    assert len(rows) == 2 and rows[1].get("Points2D:positions") is None
     px = np.array(rows[0]["Points2D:positions"])
     np.testing.assert_allclose(px, Camera(cam).project_normalized(uv), atol=1e-3)
-    assert list(rows[0]["Points2D:colors"]) == [0xFF0000FF, 0x0000FFFF]     # RGBA: red (1 m), blue
+    assert list(rows[0]["Points2D:colors"]) == [0xFF00FFFF, 0x00FFFFFF]     # RGBA: magenta (1 m), cyan
 
 
 def test_direct_mode_holds_td_at_the_sync_value():

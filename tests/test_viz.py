@@ -87,25 +87,25 @@ def read_rrd(path: Path) -> dict[str, list[dict]]:
     return rows
 
 
-def _views(chunks) -> tuple[dict[str, list[str]], dict]:
+def _views(chunks) -> tuple[dict[str, list[str]], list[str]]:
     views: dict[str, list[str]] = defaultdict(list)
-    eye: dict = {}
+    tracked: list[str] = []
     for ch in chunks:
         d = ch.to_record_batch().to_pydict()
         if "ViewBlueprint:class_identifier" in d:
             views[d["ViewBlueprint:class_identifier"][0][0]].append(d["ViewBlueprint:space_origin"][0][0])
         if "EyeControls3D:tracking_entity" in d:
-            eye = {k: v[0] for k, v in d.items()}
-    return views, eye
+            tracked.append(d["EyeControls3D:tracking_entity"][0][0])
+    return views, tracked
 
 
-def read_blueprint(path: Path) -> tuple[dict[str, list[str]], dict]:
-    """Default blueprint in a .rrd: view class -> origins, and the 3D eye's components."""
+def read_blueprint(path: Path) -> tuple[dict[str, list[str]], list[str]]:
+    """Default blueprint in a .rrd: view class -> origins, and the entities the 3D eyes track."""
     r = RrdReader(path)
     return _views(r.stream(store=r.blueprints()[0]))
 
 
-def read_blueprint_of(sink: RerunSink) -> tuple[dict[str, list[str]], dict]:
+def read_blueprint_of(sink: RerunSink) -> tuple[dict[str, list[str]], list[str]]:
     """The same for a sink that has not written any file (its blueprint object)."""
     rec = rr.RecordingStream("bp")
     mem = rec.memory_recording()
@@ -220,19 +220,25 @@ def test_sink_writes_every_entity(tmp_path):
 def test_blueprint_views(tmp_path):
     """The default blueprint lays out the 3D view following the body, both cameras,
     one plot per meaning (with ground truth: its error) and the event log."""
-    outs, gt = _scene(3)
+    outs, gt = _scene(4)                               # keyframes 0 and 3
     rrd = tmp_path / "bp.rrd"
     with RerunSink(rrd=rrd, groundtruth=gt, cam=CAM, cam1=CAM) as sink:
         for o in outs:
             sink(o)
-    views, eye = read_blueprint(rrd)
+    views, tracked = read_blueprint(rrd)
     assert views["3D"] == ["world", "world"]                  # following the body; overview
     assert sorted(views["2D"]) == ["cam1/image", "world/body/cam0/image"]
     assert sorted(views["TimeSeries"]) == sorted(f"metrics/{p}" for p in (
         "timing", "counts", "velocity", "gyro_bias", "accel_bias", "td", "gt_error"))
     assert views["TextLog"] == ["events"]
-    assert eye["EyeControls3D:tracking_entity"] == ["world/body/follow"]     # invisible, static
-    assert len(read_rrd(rrd)["world/body/follow"]) == 1
+    # the eyes track invisible framing points: static around the body, and at the centre
+    # of the trajectory's bounding box on keyframes
+    assert sorted(tracked) == ["world/body/follow", "world/overview_frame"]
+    rows = read_rrd(rrd)
+    assert len(rows["world/body/follow"]) == 1
+    c = np.mean(latest(rows["world/overview_frame"], "Points3D:positions"), axis=0)
+    p = np.array([o.T_w_b.translation() for o in outs])
+    np.testing.assert_allclose(c, (p.min(0) + p.max(0)) / 2, atol=1e-5)
     mono, _ = read_blueprint_of(RerunSink(cam=CAM))
     assert mono["2D"] == ["world/body/cam0/image"] and "metrics/gt_error" not in mono["TimeSeries"]
 
@@ -281,6 +287,25 @@ def test_stereo_matches_and_disparity(tmp_path):
     lines = rows["cam1/image/disparity"][0]["LineStrips2D:strips"]
     np.testing.assert_allclose(np.array(lines[0]), cam.project_normalized(
         np.stack([right[1], ff.uv[1]])), atol=1e-3)
+
+
+def test_direct_points_come_with_their_keyframe_image(tmp_path):
+    """In direct/hybrid modes every keyframe's image is logged (with its photometric
+    points), besides the regular rate; the points are cleared with the next image."""
+    from vio.direct.source import PointSnapshot
+    outs, _ = _scene(10)
+    snap = PointSnapshot(0, 0, np.array([[0.0, 0.0]]), np.array([1.0]), np.array([True]), np.array([0.5]))
+    rrd = tmp_path / "d.rrd"
+    with RerunSink(rrd=rrd, cam=CAM, cfg=RerunConfig(image_every=4)) as sink:
+        sink.add_direct_source(lambda: snap)
+        for o in outs:
+            sink(o)
+    rows = read_rrd(rrd)
+    assert sorted(r["frame"] for r in rows["world/body/cam0/image"]) == [0, 3, 4, 6, 8, 9]
+    pts = rows["world/body/cam0/image/direct_points"]
+    shown = sorted(r["frame"] for r in pts if r.get("Points2D:positions") is not None)
+    cleared = sorted(r["frame"] for r in pts if r.get("Points2D:positions") is None)
+    assert shown == [0, 3, 6, 9] and cleared == [4, 8]
 
 
 def test_recording_size_of_real_stereo_images(tmp_path):

@@ -84,9 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.INFO if getattr(args, "verbose", False) else logging.WARNING
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    for handler in logging.getLogger().handlers:   # the console shows `level` even when the
-        handler.setLevel(level)                    # Rerun sink lets the vio logger pass INFO
+    if not logging.getLogger().handlers:   # (else the embedding application configured it)
+        logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+        # the console keeps `level` when the Rerun sink lets the vio logger pass INFO
+        logging.getLogger().handlers[0].setLevel(level)
     try:
         if args.command == "run":
             from vio.run import cmd_run

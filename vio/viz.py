@@ -32,7 +32,8 @@ Entity paths (stable; tests read them back). Sizes given as "pt" are UI points
   of each track (logged with the image; every frame for feature-only data).
 - ``world/body/cam0/image/direct_points``: on keyframes of the direct / hybrid modes,
   the photometric points of the keyframe (``add_direct_source``), coloured by inverse
-  depth (red: ``direct_inv_depth_full`` 1/m or nearer, blue: far).
+  depth (magenta: ``direct_inv_depth_full`` 1/m or nearer, cyan: far); the keyframes'
+  images are always logged in these modes, and the points cleared with the next image.
 - ``cam1/image`` (stereo): the right image; ``cam1/image/matches`` (``Points2D``) the
   stereo matches in cam1 pixels; ``cam1/image/disparity`` (``LineStrips2D``) from each
   match to the feature's cam0 pixel.
@@ -59,7 +60,7 @@ from vio.errors import DataError
 from vio.io.types import CameraCalib, GroundTruth
 from vio.viz_align import (BLUE, GREEN, ORANGE, GroundTruthAligner, Rows, TrackLengths,  # noqa: F401
                            fit_yaw_translation, track_colors)
-from vio.viz_blueprint import FOLLOW, default_blueprint, plots
+from vio.viz_blueprint import FOLLOW, OVERVIEW, default_blueprint, plots
 from vio.viz_config import RerunConfig
 from vio.viz_io import EventLog, jpeg, optimize_rrd, ramp
 from vio.viz_plan import log_plan  # noqa: F401 - re-exported
@@ -84,6 +85,15 @@ _COLUMNS = ("timing/frame_ms", "counts/features", "counts/landmarks", "velocity/
             "velocity/z", "velocity/norm", "gyro_bias/x", "gyro_bias/y", "gyro_bias/z",
             "accel_bias/x", "accel_bias/y", "accel_bias/z", "td/td_ms", "keyframe", "gt_error/error_m")
 WINDOW_COLOR, MAP_COLOR, GT_COLOR = 0x10D8F0FF, 0x8C96AAFF, 0x30C03080
+
+
+def _frame(center: np.ndarray, distance_m: float) -> rr.Points3D:
+    """Two invisible points around ``center`` for a 3D eye to track. When the viewer starts
+    tracking an entity with its data loaded, it orbits at 1.5 x the diagonal of its bounding
+    box (measured in the 0.41 web viewer), else at the blueprint's eye distance; sized so,
+    both are ``distance_m``."""
+    d = distance_m / (1.5 * 2.0 * np.sqrt(3.0))
+    return rr.Points3D(center + np.array([[-d, -d, -d], [d, d, d]]), colors=0x00000000, radii=0.0)
 
 
 def _pieces(p: np.ndarray) -> np.ndarray:
@@ -117,7 +127,7 @@ class RerunSink:
         if groundtruth is not None and len(groundtruth) >= 2:
             self.aligner = GroundTruthAligner(groundtruth, cfg.gt_max_gap_s, cfg.gt_min_spread_m)
         self.blueprint = default_blueprint(stereo=cam1 is not None, groundtruth=self.aligner is not None,
-                                           follow_m=cfg.follow_m)
+                                           follow_m=cfg.follow_m, overview_m=cfg.overview_m)
         self._owned = recording is None
         self.rec = recording if recording is not None else rr.RecordingStream(
             app_id, recording_id=uuid.uuid4())
@@ -130,6 +140,7 @@ class RerunSink:
         self._traj = Segments(cfg.segment_len)
         self._rows: list[tuple] = []
         self._n = self._gt_n = 0
+        self._lo, self._hi = np.full(3, np.inf), np.full(3, -np.inf)      # trajectory bounds
         self._T_b_c: np.ndarray | None = None
         self._image_error = False
         self._direct = None
@@ -162,12 +173,7 @@ class RerunSink:
                 style = (rr.SeriesPoints(colors=color, names=name, markers="diamond", marker_sizes=3.0)
                          if points else rr.SeriesLines(colors=color, names=name, widths=1.5))
                 rec.log(f"metrics/{p.name}/{leaf}", style, static=True)
-        # The 3D eye tracks this entity. When the viewer starts tracking it with its data
-        # loaded, it orbits at 1.5 x the diagonal of its bounding box (measured in the web
-        # viewer 0.41), else at the blueprint's eye distance (also follow_m): two invisible
-        # points around the body make both the same.
-        d = self.cfg.follow_m / (1.5 * 2.0 * np.sqrt(3.0))
-        rec.log(FOLLOW, rr.Points3D([[-d, -d, -d], [d, d, d]], colors=0x00000000, radii=0.0), static=True)
+        rec.log(FOLLOW, _frame(np.zeros(3), self.cfg.follow_m), static=True)
         if self.cam is not None:
             rec.log("world/body/cam0", rr.Pinhole(image_from_camera=self.cam.K,
                                                   resolution=[self.cam.width, self.cam.height],
@@ -189,6 +195,9 @@ class RerunSink:
         if self._T_b_c is None or not np.array_equal(M, self._T_b_c):
             rec.log("world/body/cam0", rr.Transform3D(translation=M[:3, 3], mat3x3=M[:3, :3]))
             self._T_b_c = M
+        self._lo, self._hi = np.minimum(self._lo, p), np.maximum(self._hi, p)
+        if out.keyframe or self._n == 0:
+            rec.log(OVERVIEW, _frame((self._lo + self._hi) / 2, self.cfg.overview_m))
         k, seg = self._traj.append(p)
         if len(seg) >= 2:
             rec.log(f"world/trajectory/estimate/{k}",
@@ -196,8 +205,7 @@ class RerunSink:
         err = self.aligner.add(int(out.t_ns), out.T_w_b) if self.aligner is not None else None
         if out.keyframe and out.landmarks_w is not None:
             self._log_map(out)
-        self._log_camera(out)
-        self._log_direct(out)
+        self._log_direct(out, self._log_camera(out))
         row = self._row(out, err)
         if self._n == 0:     # alignment (and first-call compilation): an event, not a plot spike
             rec.log("events", rr.TextLog(f"first estimate at frame {out.index}: took {row[2]:.0f} ms "
@@ -239,21 +247,25 @@ class RerunSink:
         (``uv`` normalized cam0 coordinates, ``inv_depth``) or None; called on keyframes."""
         self._direct = getter
 
-    def _log_direct(self, out: FrameOutput) -> None:
+    def _log_direct(self, out: FrameOutput, image_logged: bool = False) -> None:
+        """On keyframes (whose image is always logged in these modes) the points of the
+        snapshot; they are cleared with the next image."""
+        path = "world/body/cam0/image/direct_points"
+        if self._direct is not None and image_logged and not out.keyframe:
+            self.rec.log(path, rr.Clear(recursive=False))
         snap = self._direct() if self._direct is not None and out.keyframe else None
         if snap is None or self._camera is None or len(snap.uv) == 0:
             return
         rho = getattr(snap, "inv_depth", None)
         rho = np.zeros(len(snap.uv)) if rho is None else np.asarray(rho, float)
-        self.rec.log("world/body/cam0/image/direct_points",
-                     rr.Points2D(self._camera.project_normalized(snap.uv),
+        self.rec.log(path, rr.Points2D(self._camera.project_normalized(snap.uv),
                                  colors=ramp(rho / self.cfg.direct_inv_depth_full),
                                  radii=-self.cfg.feature_pt))
 
     # ----------------------------------------------------------------- images
-    def _images(self, pkt: FramePacket | None) -> list[np.ndarray | None]:
+    def _images(self, pkt: FramePacket | None, force: bool) -> list[np.ndarray | None]:
         """[cam0, cam1] images of this frame (None where absent or not due)."""
-        if pkt is None or self._n % self.cfg.image_every:
+        if pkt is None or (self._n % self.cfg.image_every and not force):
             return [None, None]
         if pkt.images:
             return [pkt.images[0], pkt.images[1] if len(pkt.images) > 1 else None]
@@ -268,10 +280,11 @@ class RerunSink:
                 self._image_error = True
         return out
 
-    def _log_camera(self, out: FrameOutput) -> None:
+    def _log_camera(self, out: FrameOutput) -> bool:
+        """Images and feature overlays of this frame; True if the cam0 image was logged."""
         pkt = out.packet
         has_images = pkt is not None and bool(pkt.images or pkt.image_files) and not self._image_error
-        img0, img1 = self._images(pkt)
+        img0, img1 = self._images(pkt, force=self._direct is not None and out.keyframe)
         q = self.cfg.jpeg_quality
         if img0 is not None:
             self.rec.log("world/body/cam0/image", jpeg(img0, q))
@@ -280,11 +293,11 @@ class RerunSink:
         ff = out.features
         n = self._tracks.update(ff.ids if ff is not None else np.zeros(0, np.int64))
         if ff is None or self._camera is None:
-            return
+            return img0 is not None
         px = self._camera.project_normalized(ff.uv) if n.size else np.zeros((0, 2))
         trails = self._trails.update(ff.ids, px)
         if has_images and img0 is None:
-            return                         # overlays only on frames with an image
+            return False                   # overlays only on frames with an image
         colors = self._lut[np.minimum(n, self.cfg.track_len_full)]
         self.rec.log("world/body/cam0/image/features",
                      rr.Points2D(px, colors=colors, radii=-self.cfg.feature_pt))
@@ -292,6 +305,7 @@ class RerunSink:
                                                                      radii=-0.6))
         if img1 is not None:
             self._log_matches(ff, px)
+        return img0 is not None
 
     def _log_matches(self, ff, px0: np.ndarray) -> None:
         if ff.right_uv is None or self._camera1 is None:

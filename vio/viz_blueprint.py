@@ -14,7 +14,8 @@ import rerun.blueprint as rrb
 from rerun.blueprint.encodings import TextLogColumn, TextLogColumnKind, TimelineColumn
 
 
-FOLLOW = "world/body/follow"
+FOLLOW = "world/body/follow"          # invisible framing entities tracked by the 3D eyes
+OVERVIEW = "world/overview_frame"
 
 
 @dataclass(frozen=True)
@@ -31,14 +32,15 @@ class Plot:
 _R, _G, _B, _K = 0xE04040FF, 0x30A030FF, 0x4070E0FF, 0x909090FF
 _XYZ = (("x", "x", _R, False), ("y", "y", _G, False), ("z", "z", _B, False))
 # the legends would hide the y-axis labels of these small plots: titles name the colours
+# (xyz = RGB: x red, y green, z blue)
 PLOTS = (
     Plot("timing", "time per frame [ms] (orange diamonds: keyframes)",
          (("frame_ms", "frame", 0x4FA3E0FF, False), ("keyframe_ms", "keyframe", 0xFFA020FF, True))),
-    Plot("counts", "features (blue), window landmarks (orange)",
+    Plot("counts", "features blue, landmarks orange",
          (("features", "features", 0x4FA3E0FF, False), ("landmarks", "landmarks", 0xFFA020FF, False))),
-    Plot("velocity", "velocity [m/s]: x red, y green, z blue, |v| grey", _XYZ + (("norm", "|v|", _K, False),)),
-    Plot("gyro_bias", "gyro bias [rad/s]: x red, y green, z blue", _XYZ),
-    Plot("accel_bias", "accel bias [m/s²]: x red, y green, z blue", _XYZ),
+    Plot("velocity", "velocity [m/s]: xyz = RGB, |v| grey", _XYZ + (("norm", "|v|", _K, False),)),
+    Plot("gyro_bias", "gyro bias [rad/s]: xyz = RGB", _XYZ),
+    Plot("accel_bias", "accel bias [m/s²]: xyz = RGB", _XYZ),
     Plot("td", "camera-IMU time offset td [ms]", (("td_ms", "td", 0xC060E0FF, False),)),
     Plot("gt_error", "distance to aligned ground truth [m]", (("error_m", "error", 0x30C0A0FF, False),)),
 )
@@ -48,11 +50,12 @@ def plots(groundtruth: bool) -> tuple[Plot, ...]:
     return PLOTS if groundtruth else tuple(p for p in PLOTS if p.name != "gt_error")
 
 
-def eye(distance_m: float = 2.5) -> rrb.EyeControls3D:
-    """Orbit camera following the body (``world/body/follow``, see ``vio.viz``) at
-    ``distance_m``, looking down at it from 35 degrees above the horizon (world z up)."""
-    pos = distance_m * np.array([-1.0, -1.0, 1.0]) / np.sqrt(3.0)
-    return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, tracking_entity=FOLLOW,
+def eye(target: str, distance_m: float, elevation_deg: float = 35.0) -> rrb.EyeControls3D:
+    """Orbit camera tracking the entity ``target`` at ``distance_m``, looking down at it
+    from ``elevation_deg`` above the horizon (world z up)."""
+    e = np.radians(elevation_deg)
+    pos = distance_m * np.array([-np.cos(e) / np.sqrt(2), -np.cos(e) / np.sqrt(2), np.sin(e)])
+    return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, tracking_entity=target,
                              position=pos, look_target=[0.0, 0.0, 0.0], eye_up=[0, 0, 1])
 
 
@@ -76,15 +79,16 @@ def _plot_rows(groundtruth: bool) -> list:
 
 
 def default_blueprint(stereo: bool = False, groundtruth: bool = False, images: bool = True,
-                      follow_m: float = 2.5) -> rrb.Blueprint:
+                      follow_m: float = 2.5, overview_m: float = 12.0) -> rrb.Blueprint:
     """The default view. ``stereo``: show cam1 beside cam0; ``groundtruth``: add the
-    error plot; ``images``: show the camera panel(s) at all; ``follow_m``: eye distance."""
+    error plot; ``images``: show the camera panel(s) at all; ``follow_m`` / ``overview_m``:
+    eye distances of the view following the body and of the overview."""
     world = rrb.Spatial3DView(origin="world", name="world (orange: estimate, green: ground truth, "
-                              "cyan: window landmarks, grey: map)", eye_controls=eye(follow_m))
-    # the whole run from afar: only the paths and the body, so the far landmarks do not
-    # set its bounds
-    overview = rrb.Spatial3DView(origin="world", name="overview (whole trajectory)",
-                                 contents=["+ world/trajectory/**", "+ world/body", "+ world/body/cam0"])
+                              "cyan: window landmarks, grey: map)", eye_controls=eye(FOLLOW, follow_m))
+    # the run from afar, centred on the trajectory, with only the paths and the camera
+    overview = rrb.Spatial3DView(origin="world", name="overview (centred on the trajectory)",
+                                 contents=["+ world/trajectory/**", "+ world/body", "+ world/body/cam0",
+                                           f"+ {OVERVIEW}"], eye_controls=eye(OVERVIEW, overview_m, 50.0))
     cams = [rrb.Spatial2DView(origin="world/body/cam0/image", name="cam0: tracks (red new -> green old)")]
     if stereo:
         cams.append(rrb.Spatial2DView(origin="cam1/image", name="cam1: stereo matches"))

@@ -15,10 +15,11 @@ class RerunConfig:
     drawn fully green; ``map_max_points`` / ``map_chunk``: bound and chunk size of the
     marginalized map; ``*_pt``: sizes in UI points; ``frustum_m``: drawn image-plane
     distance; ``follow_m``: distance of the 3D view's eye from the body it follows;
+    ``overview_m``: of the overview's eye from the centre of the trajectory's bounding box;
     ``gt_max_gap_s``: largest ground-truth gap interpolated over;
     ``gt_min_spread_m``: horizontal RMS spread of matched positions before the yaw is
     fitted from positions; ``direct_inv_depth_full``: inverse depth (1/m) drawn fully
-    red; ``optimize_rrd``: compact the .rrd at ``close``; ``port``: viewer port.
+    magenta; ``optimize_rrd``: compact the .rrd at ``close``; ``port``: viewer port.
     The defaults keep a 30-s 20-Hz stereo recording of EuRoC near 18 MB."""
 
     image_every: int = 3
@@ -36,6 +37,7 @@ class RerunConfig:
     estimate_pt: float = 1.0
     groundtruth_pt: float = 1.6
     follow_m: float = 2.5
+    overview_m: float = 12.0
     frustum_m: float = 0.25
     gt_max_gap_s: float = 0.1
     gt_min_spread_m: float = 0.3

@@ -86,7 +86,8 @@ def jpeg(img: np.ndarray, quality: int | None):
 
 
 def ramp(t: np.ndarray) -> np.ndarray:
-    """(N,) values in [0, 1] -> (N, 3) uint8 colours blue (0) -> green -> red (1)."""
+    """(N,) values in [0, 1] -> (N, 3) uint8 colours cyan (0) -> magenta (1), apart from
+    the red-yellow-green of the track lengths drawn on the same image."""
     t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, 1.0)
-    rgb = np.stack([np.clip(2 * t - 1, 0, 1), 1 - np.abs(2 * t - 1), np.clip(1 - 2 * t, 0, 1)], 1)
+    rgb = np.stack([t, 1.0 - t, np.ones_like(t)], 1)
     return (rgb * 255).astype(np.uint8)
