@@ -151,7 +151,7 @@ def test_rerun_sink_logs_direct_points(tmp_path):
     from vio.viz import RerunSink
     cam = sim_camera("cam0")
     uv = np.array([[0.0, 0.0], [0.1, -0.05]])
-    snap = PointSnapshot(3, 0, uv, np.array([0.0, 30.0]), np.array([True, False]), np.array([1.0, 0.0]))
+    snap = PointSnapshot(3, 0, uv, np.array([0.0, 30.0]), np.array([True, False]), np.array([2.0, 0.0]))
     with RerunSink(rrd=tmp_path / "d.rrd", cam=cam) as sink:
         sink.add_direct_source(lambda: snap)
         sink._log_direct(SimpleNamespace(keyframe=True))
@@ -161,7 +161,7 @@ def test_rerun_sink_logs_direct_points(tmp_path):
     assert len(rows) == 2 and rows[1].get("Points2D:positions") is None
     px = np.array(rows[0]["Points2D:positions"])
     np.testing.assert_allclose(px, Camera(cam).project_normalized(uv), atol=1e-3)
-    assert list(rows[0]["Points2D:colors"]) == [0xFF00FFFF, 0x00FFFFFF]     # RGBA: magenta (1 m), cyan
+    assert list(rows[0]["Points2D:colors"]) == [0xFF00FFFF, 0x00FFFFFF]     # RGBA: magenta (0.5 m), cyan
 
 
 def test_direct_mode_holds_td_at_the_sync_value():

@@ -26,7 +26,7 @@ class RerunConfig:
     jpeg_quality: int | None = 60
     strip_every: int = 10
     metrics_every: int = 10
-    segment_len: int = 300
+    segment_len: int = 100
     trail_len: int = 8
     track_len_full: int = 20
     map_max_points: int = 20000
@@ -41,7 +41,7 @@ class RerunConfig:
     frustum_m: float = 0.25
     gt_max_gap_s: float = 0.1
     gt_min_spread_m: float = 0.3
-    direct_inv_depth_full: float = 1.0
+    direct_inv_depth_full: float = 2.0
     optimize_rrd: bool = True
     port: int = 9876
 

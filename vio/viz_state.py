@@ -110,7 +110,7 @@ class Segments:
     (segment index, its points so far); consecutive segments share an end point, so
     logging only the current one every frame draws the whole line."""
 
-    def __init__(self, length: int = 300) -> None:
+    def __init__(self, length: int = 100) -> None:
         if length < 2:
             raise ValueError(f"segment length must be >= 2, got {length}")
         self.length = length
