@@ -358,6 +358,15 @@ def test_image_files_are_loaded_and_missing_files_only_warn(tmp_path, caplog):
     assert "not logging images" in caplog.text
 
 
+def test_compaction_failure_only_warns(tmp_path, caplog):
+    from vio.viz_io import optimize_rrd
+    bad = tmp_path / "bad.rrd"
+    bad.write_bytes(b"not a recording")
+    assert optimize_rrd(bad) is False
+    assert bad.read_bytes() == b"not a recording" and "could not compact" in caplog.text
+    assert list(tmp_path.iterdir()) == [bad]
+
+
 def test_rrd_in_missing_directory_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         RerunSink(rrd=tmp_path / "nope" / "x.rrd")

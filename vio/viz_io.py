@@ -76,7 +76,8 @@ def optimize_rrd(path: Path) -> bool:
         return False
 
 
-def jpeg(img: np.ndarray, quality: int | None):
+def jpeg(img: np.ndarray, quality: int | None) -> rr.EncodedImage | rr.Image:
+    """(H, W) grey or (H, W, 3) BGR uint8 image -> JPEG at ``quality`` (None: raw)."""
     if quality is None:
         return rr.Image(img, color_model="L" if img.ndim == 2 else "BGR")
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
