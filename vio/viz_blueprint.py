@@ -79,7 +79,7 @@ def _plot_rows(groundtruth: bool) -> list:
 
 
 def default_blueprint(stereo: bool = False, groundtruth: bool = False, images: bool = True,
-                      follow_m: float = 1.8, overview_m: float = 9.0) -> rrb.Blueprint:
+                      follow_m: float = 1.8, overview_m: float = 12.0) -> rrb.Blueprint:
     """The default view. ``stereo``: show cam1 beside cam0; ``groundtruth``: add the
     error plot; ``images``: show the camera panel(s) at all; ``follow_m`` / ``overview_m``:
     eye distances of the view following the body and of the overview."""

@@ -37,7 +37,7 @@ class RerunConfig:
     estimate_pt: float = 1.0
     groundtruth_pt: float = 1.6
     follow_m: float = 1.8
-    overview_m: float = 9.0
+    overview_m: float = 12.0
     frustum_m: float = 0.25
     gt_max_gap_s: float = 0.1
     gt_min_spread_m: float = 0.3
