@@ -137,10 +137,12 @@ def test_direct_and_hybrid_runs(sim_exposure, mode, bound):
     snap = sink.getter()
     assert snap is not None and len(snap.uv) > 20 and np.isfinite(snap.uv).all()
     assert np.nanmedian(snap.rmse) < 15.0
+    assert snap.inv_depth.shape == (len(snap.uv),) and np.all(snap.inv_depth > 0)
 
 
 def test_rerun_sink_logs_direct_points(tmp_path):
-    """Keyframes log the snapshot's points in pixels, green (low residual) to red."""
+    """Keyframes log the snapshot's points in pixels, coloured by inverse depth (magenta near,
+    cyan far); the next logged image clears them."""
     from types import SimpleNamespace
     from test_viz import read_rrd
     from vio.direct.source import PointSnapshot
@@ -149,16 +151,17 @@ def test_rerun_sink_logs_direct_points(tmp_path):
     from vio.viz import RerunSink
     cam = sim_camera("cam0")
     uv = np.array([[0.0, 0.0], [0.1, -0.05]])
-    snap = PointSnapshot(3, 0, uv, np.array([0.0, 30.0]), np.array([True, False]))
+    snap = PointSnapshot(3, 0, uv, np.array([0.0, 30.0]), np.array([True, False]), np.array([2.0, 0.0]))
     with RerunSink(rrd=tmp_path / "d.rrd", cam=cam) as sink:
         sink.add_direct_source(lambda: snap)
         sink._log_direct(SimpleNamespace(keyframe=True))
         sink._log_direct(SimpleNamespace(keyframe=False))      # not a keyframe: nothing
+        sink._log_direct(SimpleNamespace(keyframe=False), True)   # a new image: cleared
     rows = read_rrd(tmp_path / "d.rrd")["world/body/cam0/image/direct_points"]
-    assert len(rows) == 1
+    assert len(rows) == 2 and rows[1].get("Points2D:positions") is None
     px = np.array(rows[0]["Points2D:positions"])
     np.testing.assert_allclose(px, Camera(cam).project_normalized(uv), atol=1e-3)
-    assert list(rows[0]["Points2D:colors"]) == [0x00FF00FF, 0xFF0000FF]     # RGBA: green, red
+    assert list(rows[0]["Points2D:colors"]) == [0xFF00FFFF, 0x00FFFFFF]     # RGBA: magenta (0.5 m), cyan
 
 
 def test_direct_mode_holds_td_at_the_sync_value():

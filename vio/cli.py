@@ -38,6 +38,10 @@ def _add_run(sub) -> None:
     p.add_argument("--smooth", type=Path, help="write a Kalman-smoothed planar track (TUM)")
     p.add_argument("--rerun", action="store_true", help="stream to a Rerun viewer")
     p.add_argument("--rrd", type=Path, help="record a Rerun .rrd file")
+    p.add_argument("--viz-image-every", type=int, default=3, metavar="N",
+                   help="Rerun: log the camera images every N frames (default 3)")
+    p.add_argument("--viz-jpeg-quality", type=int, default=60, metavar="Q",
+                   help="Rerun: JPEG quality 1-100 of the logged images, 0 for raw (default 60)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("-v", "--verbose", action="store_true")
 
@@ -93,8 +97,11 @@ def _handlers() -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    level = logging.INFO if getattr(args, "verbose", False) else logging.WARNING
+    if not logging.getLogger().handlers:   # (else the embedding application configured it)
+        logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+        # the console keeps `level` when the Rerun sink lets the vio logger pass INFO
+        logging.getLogger().handlers[0].setLevel(level)
     try:
         if args.command == "run":
             from vio.run import cmd_run

@@ -243,9 +243,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.td if args.td is not None else data.td_s, mode)
     sinks = []
     if args.rerun or args.rrd:
-        from vio.viz import RerunSink
+        from vio.viz import RerunConfig, RerunSink
+        q = getattr(args, "viz_jpeg_quality", 60)
+        vcfg = RerunConfig(image_every=getattr(args, "viz_image_every", 3), jpeg_quality=q or None)
         sinks.append(RerunSink(spawn=args.rerun, rrd=args.rrd, groundtruth=data.groundtruth,
-                               cam=data.cam0.calib))
+                               cam=data.cam0.calib, cfg=vcfg,
+                               cam1=data.cam1.calib if mode in STEREO_MODES else None))
     try:
         res = run_dataset(data, cfg, args.max_frames, sinks, progress=not args.no_progress,
                           mode=mode)

@@ -162,3 +162,10 @@ class GroundTruthAligner:
             return np.zeros((0, 3))
         i0, i1 = np.searchsorted(self._t, self._span[0]), np.searchsorted(self._t, self._span[1], "right")
         return self._p[i0:i1] @ self.R.T + self.t
+
+    def matched_strip(self) -> np.ndarray:
+        """(N, 3) aligned ground-truth positions at the estimate's matched times (one
+        per ``add`` that returned a distance), under the current alignment."""
+        if self.R is None:
+            return np.zeros((0, 3))
+        return self._ref.data @ self.R.T + self.t

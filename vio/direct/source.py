@@ -94,13 +94,15 @@ class TrackRecord:
 class PointSnapshot:
     """Points seen in the newest keyframe: ``uv`` (N, 2) normalized cam0 coordinates,
     ``rmse`` (N,) residual RMSE (intensity units) at the current estimate (stereo term
-    for points hosted there, else the temporal term), ``hosted`` (N,) bool."""
+    for points hosted there, else the temporal term), ``hosted`` (N,) bool,
+    ``inv_depth`` (N,) inverse depth (1/m) in that keyframe's cam0 at the estimate."""
 
     k: int
     t_ns: int
     uv: np.ndarray
     rmse: np.ndarray
     hosted: np.ndarray
+    inv_depth: np.ndarray | None = None
 
 
 def _stack(patches: list[HostPatch]) -> HostPatch:
@@ -354,25 +356,31 @@ class PhotometricSource:
             return None
         k = max(ks)
         kd = self.kfs[k]
-        uv, rmse, hosted = [], [], []
+        uv, rmse, hosted, inv_depth = [], [], [], []
         groups: dict[int, list[Point]] = {}
         for p in self.points.values():
             if not vals.exists(p.key):
                 continue
             if p.host == k:
-                ev = stereo_eval(vals.atVector(p.key), vals.atVector(S(k)), p.patch, kd.right,
+                rho_p = vals.atVector(p.key)
+                ev = stereo_eval(rho_p, vals.atVector(S(k)), p.patch, kd.right,
                                  self.rig.K1, self.rig.T_c1_c0)
-                uv.append(p.uv), hosted.append(True)
+                uv.append(p.uv), hosted.append(True), inv_depth.append(float(rho_p[0]))
                 rmse.append(np.sqrt(np.mean(ev.r[ev.valid] ** 2)) if ev.valid.any() else np.nan)
             elif k in p.targets:
                 groups.setdefault(p.host, []).append(p)
+        T_ck_w = vals.atPose3(X(k)).compose(self.rig.T_b_c).inverse()
         for h, pts in groups.items():
             rho = np.array([vals.atVector(p.key)[0] for p in pts])
+            patch = _stack([p.patch for p in pts])
             ev = temporal_eval(vals.atPose3(X(h)), vals.atPose3(X(k)), rho, vals.atVector(A(h)),
-                               vals.atVector(A(k)), _stack([p.patch for p in pts]), kd.left,
-                               self.rig.K0, self.rig.T_b_c)
+                               vals.atVector(A(k)), patch, kd.left, self.rig.K0, self.rig.T_b_c)
             n = np.maximum(ev.valid.sum(1), 1)
             uv.extend(ev.uv[:, 4]), hosted.extend([False] * len(pts))
             rmse.extend(np.sqrt((ev.r ** 2).sum(1) / n))
+            T_ck_ch = T_ck_w.compose(vals.atPose3(X(h)).compose(self.rig.T_b_c)).matrix()
+            p_ck = (patch.bearing[:, 4] / rho[:, None]) @ T_ck_ch[:3, :3].T + T_ck_ch[:3, 3]
+            inv_depth.extend(1.0 / p_ck[:, 2])
         uvn = self.rig.K0.unproject(np.array(uv).reshape(-1, 2))[:, :2]
-        return PointSnapshot(k, kd.t_ns, uvn, np.array(rmse, float), np.array(hosted, bool))
+        return PointSnapshot(k, kd.t_ns, uvn, np.array(rmse, float), np.array(hosted, bool),
+                             np.array(inv_depth, float))
