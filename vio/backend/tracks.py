@@ -41,6 +41,7 @@ class LandmarkManager:
         self._pose_cache: dict[int, gtsam.Pose3] = {}
         self._calib_cache: tuple | None = None   # (T_b_c, td) of the current update
         self._rig = None                         # factors.stereo.StereoRig of est.C_stereo
+        graph.compile_kernels()                  # not at the first keyframe: a stall there
 
     # ------------------------------------------------------------ bookkeeping
     def observe(self, k: int, fr: FeatureFrame) -> None:
