@@ -31,6 +31,8 @@ def _add_run(sub) -> None:
     p.add_argument("--smooth", type=Path, help="write a Kalman-smoothed planar track (TUM)")
     p.add_argument("--rerun", action="store_true", help="stream to a Rerun viewer")
     p.add_argument("--rrd", type=Path, help="record a Rerun .rrd file")
+    p.add_argument("--live", action="store_true",
+                   help="backend in its own process, frames from IMU propagation (not deterministic)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("-v", "--verbose", action="store_true")
 

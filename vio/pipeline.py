@@ -37,9 +37,12 @@ class PipelineConfig:
     return freed heap memory to the OS every so many seconds of data (0: never; see
     ``vio.memory``), which keeps the resident size of long runs flat.
     ``imu_lookahead_s``: IMU the sync layer serves past each frame (s): the td term
-    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency."""
+    needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency.
+    ``live``: the backend in its own process, each frame's pose from IMU propagation of
+    its newest state without waiting (``vio.live``; not deterministic; off by default)."""
 
     td_s: float = 0.0
+    live: bool = False
     imu_lookahead_s: float = 0.02
     trim_heap_every_s: float = 60.0
     backend: BackendConfig = field(default_factory=BackendConfig)

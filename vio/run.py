@@ -154,8 +154,14 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     modes). ``cfg`` None: ``default_config(mode)``."""
     mode = resolve_mode(data, mode)
     cfg = default_config(mode) if cfg is None else cfg
-    pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg,
-                    data.cam1.calib if mode in STEREO_MODES else None)
+    cam1 = data.cam1.calib if mode in STEREO_MODES else None
+    if cfg.live:
+        if mode in ("direct", "hybrid"):
+            raise ValueError(f"live operation (PipelineConfig.live) is not available in mode {mode}")
+        from vio.live import LivePipeline
+        pipe = LivePipeline(data.imu_calib, data.cam0.calib, cfg, cam1)
+    else:
+        pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg, cam1)
     pipe.sinks.extend(sinks or [])
     res = RunResult()
     stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
@@ -165,6 +171,26 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         from tqdm import tqdm
         bar = tqdm(total=len(stamps), unit="frame", leave=False)
     t0 = time.perf_counter()
+    try:
+        _loop(it, stage, pipe, res, bar, cfg.live)
+    except BaseException:
+        if cfg.live:
+            pipe.close(wait=False)
+        raise
+    if bar is not None:
+        bar.close()
+    res.wall_s = time.perf_counter() - t0
+    if cfg.live:
+        pipe.close()     # the backend's last state (after the frame path's wall time)
+    res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
+    res.keyframes = pipe.n_keyframes
+    res.recoveries = pipe.recoveries if cfg.live else pipe.est.recoveries
+    return res
+
+
+def _loop(it: Iterator[FramePacket], stage: Callable | None, pipe, res: RunResult, bar,
+          live: bool) -> None:
+    """The run loop: stage, pipeline, results."""
     for pkt in it:
         res.frames_in += 1
         if stage is not None:
@@ -176,18 +202,11 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         for out in outs:
             if out.landmark_ids is not None:
                 res.landmarks.update(zip(out.landmark_ids.tolist(), out.landmarks_w))
-        if outs:
+        if outs and not live:
             for k, (t, T) in pipe.est.window_poses().items():
                 res.smoothed[k] = (t, T)
         if bar is not None:
             bar.update(1)
-    if bar is not None:
-        bar.close()
-    res.wall_s = time.perf_counter() - t0
-    res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
-    res.keyframes = pipe.n_keyframes
-    res.recoveries = pipe.est.recoveries
-    return res
 
 
 def summary(res: RunResult, data: EurocDataset) -> list[str]:
@@ -225,6 +244,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         data = load_euroc(args.dataset, LoadOptions(trim_to_imu=args.trim))
     mode = resolve_mode(data, args.mode)
     cfg = load_config(args.config, args.td, mode)
+    if getattr(args, "live", False):
+        cfg = dataclasses.replace(cfg, live=True)
     sinks = []
     if args.rerun or args.rrd:
         from vio.viz import RerunSink
