@@ -22,9 +22,11 @@ from __future__ import annotations
 
 import fcntl
 import logging
+import queue
 import select
 import subprocess
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -103,6 +105,20 @@ class LivePipeline:
             except OSError:
                 pass
         _send(self._proc.stdin, (BackendStage, (imu_calib, cam, cfg, cam1)))
+        # a writer thread feeds the worker: when it lags and its pipe is full, the frame
+        # path queues the packet instead of blocking (the write releases the GIL)
+        self._outbox: queue.Queue = queue.Queue()
+        self._write_error: BaseException | None = None
+        self._writer = threading.Thread(target=self._write_loop, name="vio-live-writer", daemon=True)
+        self._writer.start()
+
+    def _write_loop(self) -> None:
+        while (pkt := self._outbox.get()) is not None:
+            if self._write_error is None:
+                try:
+                    _send(self._proc.stdin, pkt)
+                except (BrokenPipeError, OSError, ValueError) as exc:
+                    self._write_error = exc   # the worker died: _poll reports why
 
     @property
     def n_keyframes(self) -> int:
@@ -122,17 +138,17 @@ class LivePipeline:
         due = self._clock[0] + (pkt.t_ns - self._clock[1]) * 1e-9
         time.sleep(max(0.0, due - time.perf_counter()))
         t0 = time.perf_counter()
-        _send(self._proc.stdin, _light(pkt))
+        self._outbox.put(_light(pkt))
         self._pending += 1
         self._segments.append((pkt.t_ns, pkt.imu))
         if self._pim is not None:
             integrate(self._pim, pkt.imu)
         self._poll(0.0)
-        if self.state is None:
+        nav = self.predict()
+        if nav is None:
             return []
         s = self.state
         bias = gtsam.imuBias.ConstantBias(s.bias[:3], s.bias[3:])
-        nav = self._pim.predict(gtsam.NavState(gtsam.Pose3(s.T_w_b), s.v_w), bias)
         n_feat = 0 if pkt.features is None else len(pkt.features.ids)
         out = FrameOutput(pkt.index, pkt.t_ns, nav.pose(), np.asarray(nav.velocity()), bias, False, False,
                           time.perf_counter() - t0, n_feat, s.n_landmarks, s.td_s, gtsam.Pose3(s.T_b_c),
@@ -140,6 +156,15 @@ class LivePipeline:
         for sink in self.sinks:
             sink(out)
         return [out]
+
+    def predict(self) -> gtsam.NavState | None:
+        """The newest reported keyframe state propagated with the IMU of every packet
+        since (``Estimator.predict`` of that keyframe); None before the first state."""
+        if self.state is None:
+            return None
+        s = self.state
+        bias = gtsam.imuBias.ConstantBias(s.bias[:3], s.bias[3:])
+        return self._pim.predict(gtsam.NavState(gtsam.Pose3(s.T_w_b), s.v_w), bias)
 
     def _poll(self, timeout_s: float | None) -> None:
         """Read the worker's finished replies (waiting up to ``timeout_s``; None: forever)."""
@@ -171,7 +196,9 @@ class LivePipeline:
 
     def close(self, wait: bool = True) -> None:
         """Stop the worker; with ``wait``, after its remaining replies (the final state)."""
+        self._outbox.put(None)
         try:
+            self._writer.join()
             if wait:
                 self._poll(None)
         finally:
