@@ -335,6 +335,7 @@ def replay(vio: BaselineVIO, data: EurocDataset, sched: Schedule, frames: list,
             vio.observe(0, pkt.features)
             res.keyframes = 1
             res.outputs.append(_output(vio, pkt, True, True, t0))
+            res.n_init = 1
             continue
         integrate(vio.pim, pkt.imu)
         still = sched.keyframes.get(pkt.t_ns)

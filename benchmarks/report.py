@@ -84,7 +84,7 @@ def accuracy_tables(acc: dict) -> list[str]:
     out += _table(["dataset", "path [m]", "ATE ours [m]", "ATE baseline [m]", "ours/baseline",
                    "ATE % of path (ours / baseline)", "RPE 1 m trans [m] (ours / baseline)",
                    "RPE 1 m rot [deg] (ours / baseline)", "recoveries (ours / baseline)"], rows_a)
-    out += ["", "### Speed and memory (ms per frame: mean / p50 / p95 / max)", ""]
+    out += ["", "### Speed and memory (ms per frame after initialization: mean / p50 / p95 / max)", ""]
     out += _table(["dataset", "ours", "baseline", "time ours/baseline", "real-time factor (ours / baseline)",
                    "peak RSS MB (ours / baseline)", "keyframes"], rows_s)
     out += ["", *headline(runs)]
@@ -146,7 +146,7 @@ def image_tables(acc: dict) -> list[str]:
     notes = sorted({f"† {r['mode']}: no baseline ({r['baseline']['skipped']})." for r in runs
                     if r["baseline"].get("skipped")})
     out += ["", *notes] if notes else []
-    out += ["", "### Speed, image modes (ms per frame: mean / p50 / p95 / max)", "",
+    out += ["", "### Speed, image modes (ms per frame after initialization: mean / p50 / p95 / max)", "",
             "Ours: backend only (the KLT front end runs in a worker process); wall: time between "
             "outputs, front end included. Real-time factor: data duration / loop wall time (ours "
             "includes the front end; the baseline replays recorded features). CPU seconds do not depend "
@@ -215,7 +215,7 @@ def scaling_tables(sc: dict) -> list[str]:
                          _pair(o.get("ate_rmse"), b.get("ate_rmse")),
                          _pair(o.get("landmarks_p50"), b.get("landmarks_p50"), 0)])
         if rows:
-            out += _table([label, "ours ms/frame (mean/p50/p95/max)", "baseline ms/frame", "time ratio",
+            out += _table([label, "ours ms/frame after init (mean/p50/p95/max)", "baseline ms/frame", "time ratio",
                            "ATE [m] (ours / baseline)", "landmarks p50 (ours / baseline)"], rows)
             out.append("")
     return out

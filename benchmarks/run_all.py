@@ -120,8 +120,8 @@ def worker(job: dict) -> dict:
     t, p, q = res.arrays()
     last = res.outputs[-1] if res.outputs else None
     return {"t_ns": t.tolist(), "p": p.tolist(), "q": q.tolist(), "mode": mode,
-            "frame_ms": [o.seconds * 1e3 for o in res.outputs],
-            "frame_wall_ms": None if not emitted else (np.diff(emitted) * 1e3).tolist(),
+            "frame_ms": [o.seconds * 1e3 for o in res.outputs[res.n_init:]],   # after initialization
+            "frame_wall_ms": None if not emitted else (np.diff(emitted[max(res.n_init - 1, 0):]) * 1e3).tolist(),
             "n_landmarks": [o.n_landmarks for o in res.outputs],
             "wall_s": res.wall_s, "data_s": res.data_s, "frames_in": res.frames_in,
             "keyframes": res.keyframes, "recoveries": res.recoveries,

@@ -82,7 +82,9 @@ def custom_factor(noise: gtsam.noiseModel.Base, keys: Sequence[int], kinds: Sequ
         raise ValueError(f"{len(keys)} keys but {len(kinds)} kinds")
     dims = [tangent_dim(k) for k in kinds]
     m = int(noise.dim())
-    ends = np.cumsum([0] + dims).tolist()
+    ends = [0]
+    for d in dims:
+        ends.append(ends[-1] + d)
     spans, total = list(zip(ends[:-1], ends[1:])), ends[-1]
     key_is_pose = [(k, kind == "pose3") for k, kind in zip(keys, kinds)]
     health = DEFAULT_HEALTH if health is None else health

@@ -40,10 +40,10 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.anchor_noise import AnchorWhitening
-from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, check_model,
-                                project_batch, tangent_basis)
+from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, anchor_jacobian_batch,
+                                check_model, project_batch, tangent_basis)
 from factors.robust import RobustKernel, block_sqrt_weights, reweight_blocks
-from factors.td_projection import td_project_batch
+from factors.td_projection import shift_uv, td_project_batch
 
 
 @dataclass(frozen=True)
@@ -128,7 +128,15 @@ def landmark_anchor_jacobian(args: list, track: LandmarkTrack, model: str = "pin
                              use_td: bool = False) -> np.ndarray:
     """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`landmark_residual` order), for
     :func:`factors.anchor_noise.anchor_whitening`."""
-    return _project(args, track, model, use_td).uvi.reshape(2 * track.n, 2)
+    n = track.n
+    Tjs = np.array([T.matrix() for T in args[3:3 + n]])
+    uv_i, uv_j = track.anchor_uv, track.uv
+    if use_td:
+        td = args[3 + n][0]
+        uv_i = shift_uv(uv_i, track.anchor_vel, track.anchor_offset, td)
+        uv_j = shift_uv(uv_j, track.vel, track.offset, td)
+    return anchor_jacobian_batch(args[2].matrix(), Tjs, args[1].matrix(), args[0][0], uv_i, uv_j,
+                                 model, track.basis).reshape(2 * n, 2)
 
 
 def _evaluate(args: list, track: LandmarkTrack, model: str, sigma: float,

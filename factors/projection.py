@@ -252,6 +252,40 @@ def _project_kernel(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
 
 
 @_njit
+def _anchor_jacobian_kernel(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
+                            uv_i: np.ndarray, uv_j: np.ndarray, basis: np.ndarray, sphere: bool,
+                            Juvi: np.ndarray) -> None:
+    """Only ``Juvi`` (n, 2, 2) of :func:`_project_kernel` (same arithmetic, so the same
+    bits; zero where the cheirality residual is returned)."""
+    pw, wi, RcTtc, A, Sm, G = _anchor_terms(Ti, Tc, lam, uv_i)
+    Rc, tc = Tc[:3, :3], Tc[:3, 3]
+    Q, M, D = np.empty(3), np.empty((3, 3)), np.empty((3, 19))
+    dQ, duv, ra = np.empty((2, 3)), np.empty((2, 2)), np.empty(2)
+    for o in range(Tjs.shape[0]):
+        _transfer_into(Tjs[o, :3, :3], Tjs[o, :3, 3], Rc, tc, lam, pw, wi, RcTtc, A, Sm, G,
+                       Q, M, D)
+        if not _model_into(Q, uv_j[o], basis[o], sphere, ra, dQ, duv):
+            continue
+        for k in range(2):
+            for c in range(2):
+                Juvi[o, k, c] = dQ[k, 0] * M[0, c] + dQ[k, 1] * M[1, c] + dQ[k, 2] * M[2, c]
+
+
+def anchor_jacobian_batch(Ti: np.ndarray, Tjs: np.ndarray, Tc: np.ndarray, lam: float,
+                          uv_i: np.ndarray, uv_j: np.ndarray, model: str,
+                          basis: np.ndarray) -> np.ndarray:
+    """``dr/duv_i`` (n, 2, 2) of :func:`project_batch` (its ``uvi``) without the rest of
+    the Jacobian: the anchor-noise whitening needs only this (``factors.anchor_noise``)."""
+    n = Tjs.shape[0]
+    Juvi = np.zeros((n, 2, 2))
+    _anchor_jacobian_kernel(np.ascontiguousarray(Ti, dtype=float), np.ascontiguousarray(Tjs, dtype=float),
+                            np.ascontiguousarray(Tc, dtype=float), float(lam),
+                            np.ascontiguousarray(uv_i, dtype=float), np.ascontiguousarray(uv_j, dtype=float),
+                            np.ascontiguousarray(basis, dtype=float), model == "sphere", Juvi)
+    return Juvi
+
+
+@_njit
 def _transfer_kernel(Ti: np.ndarray, Tj: np.ndarray, Tc: np.ndarray, lam: float, uv_i: np.ndarray,
                      Q: np.ndarray, M: np.ndarray, D: np.ndarray) -> None:
     pw, wi, RcTtc, A, Sm, G = _anchor_terms(Ti, Tc, lam, uv_i)

@@ -26,16 +26,17 @@ keyframe itself constrains nothing and is rejected.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import NamedTuple, Sequence, Union
 
 import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.anchor_noise import AnchorWhitening
-from factors.projection import COL_TJ, Projected, check_model, project_batch, tangent_basis
+from factors.projection import (COL_TJ, Projected, anchor_jacobian_batch, check_model, project_batch,
+                                tangent_basis)
 from factors.robust import RobustKernel, reweight_blocks
-from factors.td_projection import td_project_batch
+from factors.td_projection import shift_uv, td_project_batch
 
 
 @dataclass(frozen=True)
@@ -69,14 +70,28 @@ class StereoTrack:
         return int(self.target.shape[0])
 
 
+class StereoRig(NamedTuple):
+    """``C = T_b_c1 T_b_c0^-1`` as a (4, 4) matrix and ``Ad(C^-1)`` (6, 6), computed once
+    per rig instead of once per track (:func:`stereo_rig`)."""
+
+    C: np.ndarray
+    ad_inv: np.ndarray
+
+
+def stereo_rig(C: gtsam.Pose3) -> StereoRig:
+    """The constants of a rig ``C`` for :func:`make_stereo_track`."""
+    return StereoRig(C.matrix(), C.inverse().AdjointMap())
+
+
 def make_stereo_track(anchor_key: int, anchor_uv: np.ndarray, obs_keys: Sequence[int],
-                      uv: np.ndarray, C: gtsam.Pose3, anchor_vel: np.ndarray | None = None,
+                      uv: np.ndarray, C: Union[gtsam.Pose3, StereoRig], anchor_vel: np.ndarray | None = None,
                       vel: np.ndarray | None = None, anchor_offset: float = 0.0,
                       offset: np.ndarray | None = None,
                       right: Sequence[bool] | None = None) -> StereoTrack:
     """Pack observations made from the body keys ``obs_keys``: cam1 observations
     (``right[i]`` True, the default) may come from the anchor, cam0 ones may not;
-    each (key, camera) pair at most once."""
+    each (key, camera) pair at most once. ``C``: the rig (a ``Pose3`` or its
+    :func:`stereo_rig`)."""
     obs_keys = [int(k) for k in obs_keys]
     n = len(obs_keys)
     right_a = np.ones(n, bool) if right is None else np.asarray(right, bool).reshape(n)
@@ -91,13 +106,14 @@ def make_stereo_track(anchor_key: int, anchor_uv: np.ndarray, obs_keys: Sequence
     index = {k: i + 1 for i, k in enumerate(others)}
     index[int(anchor_key)] = 0
     uv = np.asarray(uv, float).reshape(n, 2)
+    rig = C if isinstance(C, StereoRig) else stereo_rig(C)
     return StereoTrack(int(anchor_key), np.asarray(anchor_uv, float).reshape(2),
                        np.zeros(2) if anchor_vel is None else np.asarray(anchor_vel, float).reshape(2),
                        float(anchor_offset), tuple(others),
                        np.array([index[k] for k in obs_keys], dtype=np.int64), uv,
                        np.zeros((n, 2)) if vel is None else np.asarray(vel, float).reshape(n, 2),
                        np.zeros(n) if offset is None else np.asarray(offset, float).reshape(n),
-                       C.matrix(), C.inverse().AdjointMap(), tangent_basis(uv), right_a)
+                       rig.C, rig.ad_inv, tangent_basis(uv), right_a)
 
 
 def stereo_keys(track: StereoTrack, lam_key: int, extrinsic_key: int,
@@ -106,11 +122,16 @@ def stereo_keys(track: StereoTrack, lam_key: int, extrinsic_key: int,
     return keys + ([int(td_key)] if td_key is not None else [])
 
 
+def _virtual_bodies(args: list, track: StereoTrack) -> np.ndarray:
+    """(n, 4, 4): ``T_w_b`` of each observation's body key, times ``C`` for cam1 ones."""
+    bodies = [T.matrix() for T in args[2:3 + len(track.keys)]]
+    return np.array([bodies[t] @ track.C if rt else bodies[t]
+                     for t, rt in zip(track.target.tolist(), track.right.tolist())])
+
+
 def _project(args: list, track: StereoTrack, model: str, use_td: bool) -> Projected:
     k = len(track.keys)
-    bodies = [args[2]] + list(args[3:3 + k])
-    Tjs = np.array([bodies[t].matrix() @ track.C if rt else bodies[t].matrix()
-                    for t, rt in zip(track.target, track.right)])
+    Tjs = _virtual_bodies(args, track)
     Ti, Tc, lam = args[2].matrix(), args[1].matrix(), float(args[0][0])
     if use_td:
         return td_project_batch(Ti, Tjs, Tc, lam, float(args[3 + k][0]), track.anchor_uv,
@@ -123,7 +144,13 @@ def stereo_anchor_jacobian(args: list, track: StereoTrack, model: str = "pinhole
                            use_td: bool = False) -> np.ndarray:
     """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`stereo_residual` order), for
     :func:`factors.anchor_noise.anchor_whitening`."""
-    return _project(args, track, model, use_td).uvi.reshape(2 * track.n, 2)
+    uv_i, uv_j = track.anchor_uv, track.uv
+    if use_td:
+        td = float(args[3 + len(track.keys)][0])
+        uv_i = shift_uv(uv_i, track.anchor_vel, track.anchor_offset, td)
+        uv_j = shift_uv(uv_j, track.vel, track.offset, td)
+    return anchor_jacobian_batch(args[2].matrix(), _virtual_bodies(args, track), args[1].matrix(),
+                                 float(args[0][0]), uv_i, uv_j, model, track.basis).reshape(2 * track.n, 2)
 
 
 def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigma: float = 1.0,

@@ -42,6 +42,8 @@ def _add_run(sub) -> None:
                    help="Rerun: log the camera images every N frames (default 3)")
     p.add_argument("--viz-jpeg-quality", type=int, default=60, metavar="Q",
                    help="Rerun: JPEG quality 1-100 of the logged images, 0 for raw (default 60)")
+    p.add_argument("--live", action="store_true",
+                   help="backend in its own process, frames from IMU propagation (not deterministic)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("-v", "--verbose", action="store_true")
 

@@ -40,9 +40,12 @@ class PipelineConfig:
     ``vio.memory``), which keeps the resident size of long runs flat.
     ``imu_lookahead_s``: IMU the sync layer serves past each frame (s): the td term
     needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency.
-    ``imu_screen``: IMU fault screening and gap detection in the sync layer (``vio.faults``)."""
+    ``imu_screen``: IMU fault screening and gap detection in the sync layer (``vio.faults``).
+    ``live``: the backend in its own process, each frame's pose from IMU propagation of
+    its newest state without waiting (``vio.live``; not deterministic; off by default)."""
 
     td_s: float = 0.0
+    live: bool = False
     imu_lookahead_s: float = 0.02
     imu_screen: ImuScreenConfig = field(default_factory=ImuScreenConfig)
     trim_heap_every_s: float = 60.0

@@ -38,6 +38,10 @@ class LandmarkManager:
         self._next_key = 0
         self._pending: list[tuple[Track, int]] = []
         self._motion_cache: dict = {}
+        self._pose_cache: dict[int, gtsam.Pose3] = {}
+        self._calib_cache: tuple | None = None   # (T_b_c, td) of the current update
+        self._rig = None                         # factors.stereo.StereoRig of est.C_stereo
+        graph.compile_kernels()                  # not at the first keyframe: a stall there
 
     # ------------------------------------------------------------ bookkeeping
     def observe(self, k: int, fr: FeatureFrame) -> None:
@@ -85,6 +89,8 @@ class LandmarkManager:
         smoother indices of factors to remove."""
         removals: list[int] = []
         self._motion_cache: dict = {}
+        self._pose_cache: dict[int, gtsam.Pose3] = {}
+        self._calib_cache: tuple | None = None
         t = self.est.kf_t[k] * 1e-9
         leave = set(leaving)
         # the cap counts live landmarks only (dead ones wait for marginalization)
@@ -196,12 +202,17 @@ class LandmarkManager:
         vel = rvel = None
         if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
             vel, rvel = self._predicted_velocities(tr, frames, k, pred, lam)
-        vals = self.est.values
-        at = (graph.LinPoint(lam, vals.atPose3(graph.EXTRINSIC), {f: self._pose(f, k, pred) for f in frames},
-                             float(vals.atVector(graph.TD)[0]))
-              if self.est.cfg.vision.anchor_noise else None)
+        at = None
+        if self.est.cfg.vision.anchor_noise:
+            if self._calib_cache is None:
+                vals = self.est.values
+                self._calib_cache = (vals.atPose3(graph.EXTRINSIC), float(vals.atVector(graph.TD)[0]))
+            T_b_c, td = self._calib_cache
+            at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
         if self.est.C_stereo is not None and any(tr.obs[f].right_uv is not None for f in frames):
-            return graph.build_stereo_factor(tr, self.est.C_stereo, self.est.cfg, self.est.sigma,
+            if self._rig is None:
+                self._rig = graph.stereo_rig(self.est.C_stereo)
+            return graph.build_stereo_factor(tr, self._rig, self.est.cfg, self.est.sigma,
                                              cam.line_time_s, vel, rvel, at, frames)
         return graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma, cam.line_time_s,
                                            vel, at)
@@ -291,7 +302,13 @@ class LandmarkManager:
         return table
 
     def _pose(self, f: int, k: int, pred: gtsam.NavState) -> gtsam.Pose3:
-        return pred.pose() if f == k else self.est.values.atPose3(graph.X(f))
+        """``T_w_b`` of keyframe f: the prediction for the new keyframe k, else the
+        estimate (cached for the current update; the estimate does not change within it)."""
+        T = self._pose_cache.get(f)
+        if T is None:
+            T = pred.pose() if f == k else self.est.values.atPose3(graph.X(f))
+            self._pose_cache[f] = T
+        return T
 
     def _try_insert(self, tr: Track, k: int, pred: gtsam.NavState, v: gtsam.Values) -> None:
         """Give the track a key and an initial inverse depth once it is triangulable."""
@@ -340,14 +357,19 @@ class LandmarkManager:
         fx = self.est.cam.intrinsics[0]
         g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
         table = graph.camera_table(values, sorted(self.est.kf_t))
-        for lid in list(self.tracks):
-            tr = self.tracks[lid]
+        checked, bad = [], []
+        for tr in self.tracks.values():
             if tr.key is None or not tr.factor_indices:
                 continue
             lam = float(values.atVector(tr.key)[0])
-            bad_depth = not (1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m)
-            err = graph.reprojection_errors(tr, tr.frames(), values, table) * fx
-            if bad_depth or (err.size and err.max() > vc.outlier_px):
+            # the depth bounds exclude lam <= 0 (reprojection_errors: all infinite)
+            ok = lam > 0 and 1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m
+            (checked if ok else bad).append(tr)
+        worst = graph.worst_reprojection_errors(checked, values, table) * fx
+        bad_ids = {tr.lid for tr in bad} | {tr.lid for tr, e in zip(checked, worst) if e > vc.outlier_px}
+        for lid in list(self.tracks):
+            tr = self.tracks[lid]
+            if lid in bad_ids:
                 self._retire_key(tr, g, stamps, removals)
                 del self.tracks[lid]
                 self.strikes[lid] = self.strikes.get(lid, 0) + 1

@@ -1,0 +1,93 @@
+"""The backend's fast paths give the same numbers as the reference code they replace."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from factors import landmark, stereo
+from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis
+from vio.backend import graph
+from vio.backend.config import BackendConfig
+from vio.backend.landmarks import Obs, Track
+
+
+def _pose(rng: np.random.Generator, scale: float = 0.2) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, scale, 3)), rng.normal(0, scale, 3))
+
+
+@pytest.mark.parametrize("model", ["pinhole", "sphere"])
+def test_anchor_jacobian_batch_is_project_batch_uvi(model):
+    rng = np.random.default_rng(3)
+    Ti, Tc = _pose(rng).matrix(), _pose(rng, 0.05).matrix()
+    Tjs = np.array([_pose(rng).matrix() for _ in range(6)])
+    flip = gtsam.Pose3(gtsam.Rot3.Ry(np.pi), np.zeros(3))     # camera j: camera i turned round
+    Tjs[2] = (gtsam.Pose3(Ti) * gtsam.Pose3(Tc) * flip * gtsam.Pose3(Tc).inverse()).matrix()
+    uv_i, uv_j = rng.normal(0, 0.3, 2), rng.normal(0, 0.3, (6, 2))
+    B = tangent_basis(uv_j)
+    ref = project_batch(Ti, Tjs, Tc, 0.4, uv_i, uv_j, model, B)
+    got = anchor_jacobian_batch(Ti, Tjs, Tc, 0.4, uv_i, uv_j, model, B)
+    assert np.array_equal(got, ref.uvi)
+    if model == "pinhole":
+        assert not ref.valid.all() and not got[~ref.valid].any()
+
+
+@pytest.mark.parametrize("use_td", [False, True])
+def test_anchor_jacobians_of_the_factors_match_their_projection(use_td):
+    rng = np.random.default_rng(5)
+    poses = [_pose(rng) for _ in range(4)]
+    keys = [gtsam.symbol("x", i) for i in range(4)]
+    lm = landmark.make_track(keys[0], rng.normal(0, 0.2, 2), keys[1:], rng.normal(0, 0.2, (3, 2)),
+                             anchor_vel=rng.normal(0, 1, 2), vel=rng.normal(0, 1, (3, 2)),
+                             anchor_offset=0.001, offset=rng.normal(0, 0.002, 3))
+    args = [np.array([0.3]), _pose(rng, 0.05), *poses] + ([np.array([0.004])] if use_td else [])
+    ref = landmark._project(args, lm, "pinhole", use_td).uvi.reshape(-1, 2)
+    assert np.array_equal(landmark.landmark_anchor_jacobian(args, lm, "pinhole", use_td), ref)
+    C = gtsam.Pose3(gtsam.Rot3(), np.array([0.11, 0.0, 0.0]))
+    st = stereo.make_stereo_track(keys[0], rng.normal(0, 0.2, 2), [keys[1], keys[2], keys[0], keys[2]],
+                                  rng.normal(0, 0.2, (4, 2)), stereo.stereo_rig(C),
+                                  anchor_vel=rng.normal(0, 1, 2), vel=rng.normal(0, 1, (4, 2)),
+                                  right=[False, False, True, True])
+    args = [np.array([0.3]), _pose(rng, 0.05), *poses[:3]] + ([np.array([0.004])] if use_td else [])
+    ref = stereo._project(args, st, "sphere", use_td).uvi.reshape(-1, 2)
+    assert np.array_equal(stereo.stereo_anchor_jacobian(args, st, "sphere", use_td), ref)
+
+
+def test_stereo_rig_equals_the_pose():
+    C = gtsam.Pose3(gtsam.Rot3.Expmap(np.array([0.01, 0.02, -0.01])), np.array([0.11, 0.001, 0.0]))
+    a = stereo.make_stereo_track(1, np.zeros(2), [1, 2], np.full((2, 2), 0.1), C)
+    b = stereo.make_stereo_track(1, np.zeros(2), [1, 2], np.full((2, 2), 0.1), stereo.stereo_rig(C))
+    assert np.array_equal(a.C, b.C) and np.array_equal(a.ad_inv, b.ad_inv)
+
+
+def test_worst_reprojection_errors_match_the_per_track_check():
+    rng = np.random.default_rng(11)
+    vals = gtsam.Values()
+    frames = list(range(5))
+    for f in frames:
+        vals.insert(graph.X(f), gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.05, 3)),
+                                            np.array([0.1 * f, 0.0, 0.0])))
+    vals.insert(graph.EXTRINSIC, _pose(rng, 0.02))
+    vals.insert(graph.TD, np.array([0.003]))
+    tracks = []
+    for i, fs in enumerate([[0, 1, 2], [1, 3, 4], [2], [0, 1, 2, 3, 4], [3, 4]]):
+        tr = Track(i, {f: Obs(rng.normal(0, 0.2, 2), rng.normal(0, 1, 2), 100.0 * f) for f in fs},
+                   graph.L(i), fs[0])
+        vals.insert(tr.key, np.array([0.2 + 0.1 * i]))
+        if i % 2 == 0 and len(fs) > 1:   # a factor has set the td shifts of these
+            graph.build_landmark_factor(tr, fs, BackendConfig(), 1e-3, 1e-5)
+        tracks.append(tr)
+    table = graph.camera_table(vals, frames)
+    got = graph.worst_reprojection_errors(tracks, vals, table)
+    for tr, g in zip(tracks, got):
+        e = graph.reprojection_errors(tr, tr.frames(), vals, table)
+        assert g == (e.max() if e.size else 0.0)
+
+
+def test_image_velocity_rows_match_the_broadcast_formula():
+    rng = np.random.default_rng(2)
+    uv, z, w, v = rng.normal(size=(7, 2)), rng.uniform(1, 5, 7), rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    rows = graph.image_velocity(uv, z, w, v)            # compiled path
+    single = np.array([graph.image_velocity(uv[i], z[i], w[i], v[i]) for i in range(7)])
+    assert np.array_equal(rows, single)
