@@ -27,7 +27,7 @@ import enum
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -135,6 +135,14 @@ class Synchronizer:
             raise ValueError(f"frame stamp {stamp_ns} does not increase")
         self._frames.append(_Frame(stamp_ns, features, tuple(image_files), tuple(images)))
 
+    def set_td(self, td_s: float) -> None:
+        """Apply ``td_s`` (s) to the frames served from now on (the estimator's fed-back
+        estimate, see ``vio.backend.config.CalibConfig.td_feedback_s``); a frame it would
+        put at or before the previous one is dropped as usual."""
+        if not np.isfinite(td_s):
+            raise ValueError(f"td must be finite, got {td_s}")
+        self.td_ns = int(round(td_s * 1e9))
+
     def close(self) -> None:
         """No more IMU will come: frames beyond the last sample become DROPPED."""
         self._closed = True
@@ -192,15 +200,19 @@ class Synchronizer:
 def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
             features: list[FeatureFrame] | None = None,
             image_files: list[tuple[Path, ...]] | None = None,
-            lookahead_s: float = 0.0) -> Iterator[FramePacket]:
+            lookahead_s: float = 0.0,
+            td_source: Callable[[], float] | None = None) -> Iterator[FramePacket]:
     """Iterate a recorded dataset as packets (dropped frames are skipped).
 
-    ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``.
+    ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``. ``td_source``:
+    called before each frame is served, returns the td (s) to apply to it (td feedback).
     """
     sync = Synchronizer(td_s, lookahead_s)
     sync.add_imu_block(imu)
     sync.close()
     for k, stamp in enumerate(frame_stamps):
+        if td_source is not None:
+            sync.set_td(td_source())
         sync.add_frame(int(stamp), features[k] if features is not None else None,
                        image_files[k] if image_files is not None else ())
         res = sync.poll()
