@@ -137,6 +137,10 @@ class KeyframeRates:
         self._td_obs[k] = float(td_obs_s)
         self._cache.pop(k, None)
 
+    def td_obs(self, k: int) -> float:
+        """The ``td_obs_s`` keyframe ``k`` was added with (0 if unknown)."""
+        return self._td_obs.get(k, 0.0)
+
     def __contains__(self, k: int) -> bool:
         return k in self._kf
 

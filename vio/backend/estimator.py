@@ -201,7 +201,7 @@ class Estimator:
         td_obs = self.td_obs(frame)
         if gyro is not None:
             self.rates.add_keyframe(k1, t_ns, gyro, td_obs)
-        self.lm.observe(k1, features, td_obs)
+        self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
         for src in self.sources:

@@ -40,8 +40,10 @@ class LandmarkManager:
         self._motion_cache: dict = {}
 
     # ------------------------------------------------------------ bookkeeping
-    def observe(self, k: int, fr: FeatureFrame, td_obs: float = 0.0) -> None:
-        """Append keyframe ``k``'s observations; ``td_obs`` (s): see ``Obs.td_obs``."""
+    def observe(self, k: int, fr: FeatureFrame) -> None:
+        """Append keyframe ``k``'s observations, with the td its time holds (``Obs.td_obs``,
+        from ``KeyframeRates.td_obs``)."""
+        td_obs = self.est.rates.td_obs(k)
         right = fr.right_uv if fr.right_uv is not None else np.full((len(fr.ids), 2), np.nan)
         rvel = fr.right_velocity if fr.right_velocity is not None else np.zeros((len(fr.ids), 2))
         for lid, uv, vel, row, ruv, rv in zip(fr.ids, fr.uv, fr.velocity, fr.row, right, rvel):
