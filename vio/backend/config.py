@@ -157,7 +157,9 @@ class CalibConfig:
     synced at the true offset from the start give 24.91 ms and an excerpt starting in
     flight (30 s) 24.87 ms without feedback: what remains is learnt on the ground and at
     takeoff with the offset still unknown, before any feedback, and kept in the window's
-    marginal (starting the feedback after 3 s instead of 10 s changes nothing)."""
+    marginal (starting the feedback after 3 s instead of 10 s changes nothing). Steps of
+    1 ms per frame rather than 5: boxwall MH_03 (seed 300) true +25 ms ATE 0.658 -> 0.222 m
+    (0.261 m without feedback), our generator's 0.054 -> 0.051 m."""
 
     estimate_extrinsic: bool = False
     estimate_td: bool = True
@@ -166,7 +168,7 @@ class CalibConfig:
     td_sigma: float = 0.01
     fixed_sigma: float = 1e-6
     td_feedback_s: float = 0.002
-    td_feedback_step_s: float = 0.005
+    td_feedback_step_s: float = 0.001
     td_feedback_after_s: float = 10.0
 
 
