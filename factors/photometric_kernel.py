@@ -1,0 +1,393 @@
+"""Numba kernels of the per-host photometric factor (``factors.photometric_host``).
+
+One call linearizes all N points of one host keyframe observed in M target keyframes
+(and, optionally, in the host's right image): it refines every point's inverse depth
+rho by a few Gauss-Newton steps with the poses held, evaluates the Huber-weighted
+photometric residuals (same math and weights as ``factors.photometric``: DSO's
+8-pixel pattern, affine brightness [a, b] per keyframe, weight
+w = lambda c^2 / (c^2 + |grad I_host|^2) / (2 sigma_I^2), Huber on sqrt(w) r) and
+accumulates the normal equations over the frame variables with each point's rho
+eliminated (Schur complement, as DSO's energy functional and GTSAM's smart factors):
+
+    H = sum_n (H_xx^n - H_xr^n H_rx^n / H_rr^n),   g = sum_n (g_x^n - H_xr^n g_r^n / H_rr^n).
+
+Variable layout (n = 8 (M + 1)): [xi_host (6), ab_host (2), then per target m:
+xi_m (6), ab_m (2)], xi the GTSAM Pose3 tangent [omega, v] of T_w_b (retract T Exp(xi)).
+
+Outliers (DSO's residual states): a (point, target) pair whose pattern leaves the
+image, or whose raw residual RMS after the depth refinement exceeds max(``outlier_rms``,
+twice the median over the host's points in that target; DSO also scales its
+threshold with the frame's residual statistics), is left out of this linearization
+(a pair whose pattern left the image is switched off for good in ``tmask``: at a
+new keyframe's first linearization its pose is only a prediction, and a few pixels
+of error there must not discard a good residual for good); a point whose static stereo RMS exceeds it (or
+whose depth leaves the bounds) is switched off in ``alive``.
+
+Images are (H, W, 3) float64 stacks [I, dI/du, dI/dv] (``BilinearImage._stack``),
+sampled bilinearly with the validity margins of ``BilinearImage``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:
+    from numba import njit as _numba_njit
+
+    def _njit(fn):  # noqa: D103
+        return _numba_njit(cache=True, nogil=True, fastmath=False)(fn)
+except ImportError:  # pragma: no cover
+    def _njit(fn):  # noqa: D103
+        return fn
+
+MIN_Z = 1e-6
+
+
+@_njit
+def sample(stack, u, v, out):
+    """Bilinear [I, gx, gy] at (u, v) into ``out`` (3,); False outside the valid area."""
+    h, w = stack.shape[0], stack.shape[1]
+    if not (u >= 1.0 and u < w - 2.0 and v >= 1.0 and v < h - 2.0):
+        return False
+    u0, v0 = int(u), int(v)
+    fx, fy = u - u0, v - v0
+    for c in range(3):
+        a = stack[v0, u0, c] + fx * (stack[v0, u0 + 1, c] - stack[v0, u0, c])
+        b = stack[v0 + 1, u0, c] + fx * (stack[v0 + 1, u0 + 1, c] - stack[v0 + 1, u0, c])
+        out[c] = a + fy * (b - a)
+    return True
+
+
+@_njit
+def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
+    """Target pixel of the scaled point q = R f + rho t; fills smp = [I, gx, gy] and
+    dq = dr/dq (3,) and returns (ok, q0, q1, q2, u, v)."""
+    q0 = R[0, 0] * f0 + R[0, 1] * f1 + R[0, 2] * f2 + rho * t[0]
+    q1 = R[1, 0] * f0 + R[1, 1] * f1 + R[1, 2] * f2 + rho * t[1]
+    q2 = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 + rho * t[2]
+    if q2 <= MIN_Z:
+        return False, q0, q1, q2, 0.0, 0.0
+    u = K[0] * q0 / q2 + K[2]
+    v = K[1] * q1 / q2 + K[3]
+    if not sample(stack, u, v, smp):
+        return False, q0, q1, q2, u, v
+    gu = smp[1] * K[0] / q2
+    gv = smp[2] * K[1] / q2
+    dq[0] = gu
+    dq[1] = gv
+    dq[2] = -(gu * q0 + gv * q1) / q2
+    return True, q0, q1, q2, u, v
+
+
+@_njit
+def _huber(e2, k):
+    """(IRLS weight, cost) of a whitened squared residual e2 under Huber k (k <= 0: none)."""
+    if k <= 0.0 or e2 <= k * k:
+        return 1.0, 0.5 * e2
+    e = math.sqrt(e2)
+    return k / e, k * e - 0.5 * k * k
+
+
+@_njit
+def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k):
+    """Static stereo of point p at rho: (H_rr, g_r, cost, raw sum r^2, n valid)."""
+    P = bearing.shape[1]
+    smp = np.empty(3)
+    dq = np.empty(3)
+    s = math.exp(ab_r[0])
+    Hrr = 0.0
+    gr = 0.0
+    cost = 0.0
+    ss = 0.0
+    nv = 0
+    for k in range(P):
+        if not hvalid[p, k]:
+            continue
+        ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
+                                     R_rl, t_rl, K1, st_img, smp, dq)
+        if not ok:
+            continue
+        r = smp[0] - ab_r[1] - s * Ii[p, k]
+        jr = dq[0] * t_rl[0] + dq[1] * t_rl[1] + dq[2] * t_rl[2]
+        w = st_w * wg[p, k]
+        hw, c = _huber(w * r * r, huber_k)
+        Hrr += hw * w * jr * jr
+        gr += hw * w * jr * r
+        cost += c
+        ss += r * r
+        nv += 1
+    return Hrr, gr, cost, ss, nv
+
+
+@_njit
+def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k):
+    """Temporal term of point p in target m at rho: (H_rr, g_r, cost, raw sum r^2, n valid)."""
+    P = bearing.shape[1]
+    smp = np.empty(3)
+    dq = np.empty(3)
+    s = math.exp(ab_j[0] - ab_h[0])
+    Hrr = 0.0
+    gr = 0.0
+    cost = 0.0
+    ss = 0.0
+    nv = 0
+    for k in range(P):
+        if not hvalid[p, k]:
+            continue
+        ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
+                                     R, t, K, img, smp, dq)
+        if not ok:
+            continue
+        r = smp[0] - ab_j[1] - s * (Ii[p, k] - ab_h[1])
+        jr = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
+        w = w0 * wg[p, k]
+        hw, c = _huber(w * r * r, huber_k)
+        Hrr += hw * w * jr * jr
+        gr += hw * w * jr * r
+        cost += c
+        ss += r * r
+        nv += 1
+    return Hrr, gr, cost, ss, nv
+
+
+@_njit
+def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
+               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max):
+    """A few damped Gauss-Newton steps on the inverse depth of point p (poses held)."""
+    M = R_ji.shape[0]
+    for _ in range(iters):
+        Hrr = 0.0
+        gr = 0.0
+        if use_stereo:
+            a, b, _c, _s, _n = _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl,
+                                             t_rl, ab_r, st_w, huber_k)
+            Hrr += a
+            gr += b
+        for m in range(M):
+            if tmask[p, m]:
+                a, b, _c, _s, _n = _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, imgs[m], K,
+                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
+                Hrr += a
+                gr += b
+        if Hrr <= 1e-12:
+            break
+        step = -gr / Hrr
+        lim = 0.25 * rho + 0.02
+        step = min(max(step, -lim), lim)
+        rho = min(max(rho + step, rho_min), rho_max)
+        if abs(step) < 1e-6 * rho:
+            break
+    return rho
+
+
+@_njit
+def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
+                t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k,
+                outlier_rms, iters, rho_min, rho_max, update):
+    """Reduced normal equations of one host (module docstring).
+
+    Returns (H (n, n), g (n,), cost, reduced cost, n points used); with ``update`` the
+    refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``.
+    """
+    N, P = Ii.shape
+    M = R_ji.shape[0]
+    n = 8 * (M + 1)
+    H = np.zeros((n, n))
+    g = np.zeros(n)
+    hx = np.zeros(n)
+    Jh = np.zeros(8)
+    Jt = np.zeros(8)
+    smp = np.empty(3)
+    dq = np.empty(3)
+    gb = np.empty(3)
+    hh = np.empty(3)
+    cost = 0.0
+    red = 0.0
+    used = 0
+    # pass 1: refined depths, stereo check, pattern RMS of every (point, target)
+    rp = rho.copy()
+    ms = np.full((N, M), np.inf)
+    ok_p = alive.copy()
+    for p in range(N):
+        if not alive[p]:
+            continue
+        rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
+                           w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters,
+                           rho_min, rho_max)
+        if use_stereo:
+            a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
+                                            t_rl, ab_r, st_w, huber_k)
+            if nv < P // 2 or ss > outlier_rms * outlier_rms * nv:
+                ok_p[p] = False
+        if rp[p] <= rho_min or rp[p] >= rho_max:
+            ok_p[p] = False
+        nh = 0
+        for k in range(P):
+            nh += hvalid[p, k]
+        for m in range(M):
+            if tmask[p, m]:
+                _a, _b, _c, ss, nv = _temporal_rho(p, m, rp[p], bearing, Ii, wg, hvalid, imgs[m], K,
+                                                   R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
+                if nv == nh and nv > 0:
+                    ms[p, m] = math.sqrt(ss / nv)
+    # outlier thresholds per target: outlier_rms, or twice the median point RMS where
+    # the whole image fits worse (blur, a changed exposure not yet estimated)
+    th = np.full(M, outlier_rms)
+    for m in range(M):
+        col = ms[:, m][ok_p & np.isfinite(ms[:, m])]
+        if col.size:
+            th[m] = max(outlier_rms, 2.0 * np.median(col))
+    for p in range(N):
+        if not alive[p]:
+            continue
+        if not ok_p[p]:
+            if update:
+                alive[p] = False
+            continue
+        r_p = rp[p]
+        Hrr = 0.0
+        gr = 0.0
+        cp = 0.0
+        if use_stereo:
+            a, b, c, ss, nv = _stereo_terms(p, r_p, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl,
+                                            ab_r, st_w, huber_k)
+            Hrr += a
+            gr += b
+            cp += c
+        for i in range(n):
+            hx[i] = 0.0
+        any_t = False
+        for m in range(M):
+            if not tmask[p, m]:
+                continue
+            if not ms[p, m] <= th[m]:
+                if update and not np.isfinite(ms[p, m]):
+                    tmask[p, m] = False     # left the image: for good
+                continue                    # misfit: off at this linearization only
+            any_t = True
+            s = math.exp(ab_t[m, 0] - ab_h[0])
+            o = 8 * (m + 1)
+            R = R_ji[m]
+            t = t_ji[m]
+            Rjb = R_jb[m]
+            for k in range(P):
+                if not hvalid[p, k]:
+                    continue
+                f0, f1, f2 = bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2]
+                ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
+                if not ok:
+                    continue
+                hI = s * (Ii[p, k] - ab_h[1])
+                r = smp[0] - ab_t[m, 1] - hI
+                w = w0 * wg[p, k]
+                hw, c = _huber(w * r * r, huber_k)
+                w *= hw
+                cp += c
+                for i in range(3):      # g_b = dr/dq R_c_b (row vector)
+                    gb[i] = dq[0] * R_b_c[i, 0] + dq[1] * R_b_c[i, 1] + dq[2] * R_b_c[i, 2]
+                qb0 = R_b_c[0, 0] * q0 + R_b_c[0, 1] * q1 + R_b_c[0, 2] * q2 + r_p * t_b_c[0]
+                qb1 = R_b_c[1, 0] * q0 + R_b_c[1, 1] * q1 + R_b_c[1, 2] * q2 + r_p * t_b_c[1]
+                qb2 = R_b_c[2, 0] * q0 + R_b_c[2, 1] * q1 + R_b_c[2, 2] * q2 + r_p * t_b_c[2]
+                Jt[0] = gb[1] * qb2 - gb[2] * qb1
+                Jt[1] = gb[2] * qb0 - gb[0] * qb2
+                Jt[2] = gb[0] * qb1 - gb[1] * qb0
+                Jt[3] = -r_p * gb[0]
+                Jt[4] = -r_p * gb[1]
+                Jt[5] = -r_p * gb[2]
+                Jt[6] = -hI
+                Jt[7] = -1.0
+                for i in range(3):      # hh = g_b R_bj_bi
+                    hh[i] = gb[0] * Rjb[0, i] + gb[1] * Rjb[1, i] + gb[2] * Rjb[2, i]
+                fb0 = R_b_c[0, 0] * f0 + R_b_c[0, 1] * f1 + R_b_c[0, 2] * f2 + r_p * t_b_c[0]
+                fb1 = R_b_c[1, 0] * f0 + R_b_c[1, 1] * f1 + R_b_c[1, 2] * f2 + r_p * t_b_c[1]
+                fb2 = R_b_c[2, 0] * f0 + R_b_c[2, 1] * f1 + R_b_c[2, 2] * f2 + r_p * t_b_c[2]
+                Jh[0] = fb1 * hh[2] - fb2 * hh[1]
+                Jh[1] = fb2 * hh[0] - fb0 * hh[2]
+                Jh[2] = fb0 * hh[1] - fb1 * hh[0]
+                Jh[3] = r_p * hh[0]
+                Jh[4] = r_p * hh[1]
+                Jh[5] = r_p * hh[2]
+                Jh[6] = hI
+                Jh[7] = s
+                jr = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
+                for i in range(8):
+                    wi = w * Jh[i]
+                    for j in range(8):
+                        H[i, j] += wi * Jh[j]
+                        H[i, o + j] += wi * Jt[j]
+                    g[i] += wi * r
+                    hx[i] += wi * jr
+                    wt = w * Jt[i]
+                    for j in range(8):
+                        H[o + i, o + j] += wt * Jt[j]
+                    g[o + i] += wt * r
+                    hx[o + i] += wt * jr
+                Hrr += w * jr * jr
+                gr += w * jr * r
+        cost += cp
+        if update:
+            rho[p] = r_p
+        if not any_t:
+            red += cp - (0.5 * gr * gr / Hrr if Hrr > 1e-12 else 0.0)
+            continue
+        used += 1
+        if Hrr > 1e-12:
+            inv = 1.0 / Hrr
+            for i in range(n):
+                if hx[i] == 0.0:
+                    continue
+                a = hx[i] * inv
+                g[i] -= a * gr
+                for j in range(n):
+                    H[i, j] -= a * hx[j]
+            red += cp - 0.5 * gr * gr * inv
+        else:
+            red += cp
+    # the host-target blocks were filled on one side only
+    for m in range(M):
+        o = 8 * (m + 1)
+        for i in range(8):
+            for j in range(8):
+                H[o + j, i] = H[i, o + j]
+    return H, g, cost, red, used
+
+
+@_njit
+def square_root_kernel(H, g, E, rel_eps):
+    """(r (n + 1,), J (n + 1, n)) with J^T J = H + eps I, J^T r = g, 0.5 |r|^2 = max(E, .):
+    Cholesky H + eps I = L L^T (eps = rel_eps * max diag H, for the gauge directions),
+    J = L^T, r = L^-1 g, and a last row sqrt(2 E - |L^-1 g|^2) with a zero Jacobian."""
+    n = H.shape[0]
+    dmax = 0.0
+    for i in range(n):
+        dmax = max(dmax, H[i, i])
+    eps = rel_eps * max(dmax, 1e-300)
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = H[j, j] + eps
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        d = math.sqrt(s) if s > eps else math.sqrt(eps)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = H[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    r = np.zeros(n + 1)
+    for i in range(n):
+        s = g[i]
+        for k in range(i):
+            s -= L[i, k] * r[k]
+        r[i] = s / L[i, i]
+    rr = 0.0
+    for i in range(n):
+        rr += r[i] * r[i]
+    r[n] = math.sqrt(max(2.0 * E - rr, 0.0))
+    J = np.zeros((n + 1, n))
+    for i in range(n):
+        for j in range(i, n):
+            J[i, j] = L[j, i]
+    return r, J
