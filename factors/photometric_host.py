@@ -31,7 +31,7 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.photometric import HostPatch, PhotometricParams, Pinhole
-from factors.photometric_kernel import host_system, square_root_kernel
+from factors.photometric_kernel import DARK, SATURATED, host_system, square_root_kernel
 
 try:
     from numba.typed import List
@@ -46,7 +46,9 @@ class HostParams:
     ``stereo_weight`` lambda of the static stereo term; ``outlier_rms`` raw residual RMS
     (intensity units) beyond which a (point, target) pair is switched off;
     ``refine_iters`` Gauss-Newton steps on each rho per linearization; ``rho_min``,
-    ``rho_max`` bounds (1/m) outside which a point is dropped."""
+    ``rho_max`` bounds (1/m) outside which a point is dropped; ``damping`` mu: the factor
+    returns the square root of H + mu diag(H) (a Marquardt-damped step, unbiased at
+    convergence because the gradient is kept)."""
 
     photo: PhotometricParams = field(default_factory=PhotometricParams)
     stereo_weight: float = 1.0
@@ -54,13 +56,15 @@ class HostParams:
     refine_iters: int = 3
     rho_min: float = 1.0 / 30.0
     rho_max: float = 5.0
+    damping: float = 0.0
 
 
 @dataclass(eq=False)
 class HostPoints:
     """Mutable state of one host's points: constants of the host patches, ``rho`` (N,)
     inverse depths (updated at each linearization), ``alive`` (N,) points in use and
-    ``tmask`` (N, M_max) (point, target) pairs in use, target slot m = m-th target."""
+    ``tmask`` (N, M_max) (point, target) pairs in use, target slot m = m-th target.
+    Clipped host pixels (>= ``SATURATED`` or <= ``DARK``) are marked invalid at creation."""
 
     patch: HostPatch
     wg: np.ndarray
@@ -72,6 +76,8 @@ class HostPoints:
     def create(patch: HostPatch, rho: np.ndarray, grad_c: float, max_targets: int) -> "HostPoints":
         c2 = grad_c ** 2
         n = len(patch)
+        patch = HostPatch(patch.uv, patch.bearing, patch.intensity, patch.grad_sq,
+                          patch.valid & (patch.intensity < SATURATED) & (patch.intensity > DARK))
         return HostPoints(patch, c2 / (c2 + patch.grad_sq), np.asarray(rho, float).copy(),
                           np.ones(n, bool), np.ones((n, max_targets), bool))
 
@@ -132,13 +138,13 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update)
 
 
-def square_root(H: np.ndarray, g: np.ndarray, E: float, rel_eps: float = 1e-9
+def square_root(H: np.ndarray, g: np.ndarray, E: float, rel_eps: float = 1e-9, damp: float = 0.0
                 ) -> tuple[np.ndarray, np.ndarray]:
     """(r (n + 1,), J (n + 1, n)) with J^T J = H + eps I, J^T r = g and 0.5 |r|^2 = E (when
     E >= 0.5 g^T H^-1 g): a Cholesky square root (``square_root_kernel``; eps = rel_eps x
     max diag(H) regularizes the gauge directions; LAPACK's eigh costs ~50x more here)."""
     return square_root_kernel(np.ascontiguousarray(H, float), np.ascontiguousarray(g, float),
-                              float(E), float(rel_eps))
+                              float(E), float(rel_eps), float(damp))
 
 
 def host_residual_fn(pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole, T_b_c: gtsam.Pose3,
@@ -148,7 +154,7 @@ def host_residual_fn(pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole,
 
     def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
         H, g, _, red, _ = host_linearize(args, pts, targets, K, T_b_c, params, stereo)
-        return square_root(H, g, red)
+        return square_root(H, g, red, damp=params.damping)
 
     return fn
 

@@ -18,10 +18,12 @@ Outliers (DSO's residual states): a (point, target) pair whose pattern leaves th
 image, or whose raw residual RMS after the depth refinement exceeds max(``outlier_rms``,
 twice the median over the host's points in that target; DSO also scales its
 threshold with the frame's residual statistics), is left out of this linearization
-(a pair whose pattern left the image is switched off for good in ``tmask``: at a
+(a pair whose whole pattern left the image is switched off for good in ``tmask``; one
+with more than two pattern pixels outside or saturated sits out the linearization: at a
 new keyframe's first linearization its pose is only a prediction, and a few pixels
-of error there must not discard a good residual for good); a point whose static stereo RMS exceeds it (or
-whose depth leaves the bounds) is switched off in ``alive``.
+of error there must not discard a good residual for good); a point whose static stereo RMS exceeds
+``outlier_rms`` sits out the linearization, one whose depth reaches the bounds is
+switched off in ``alive`` for good.
 
 Images are (H, W, 3) float64 stacks [I, dI/du, dI/dv] (``BilinearImage._stack``),
 sampled bilinearly with the validity margins of ``BilinearImage``.
@@ -43,6 +45,14 @@ except ImportError:  # pragma: no cover
         return fn
 
 MIN_Z = 1e-6
+MAX_LOG_GAIN = 5.0
+"""Relative log-gains a_j - a_h are clipped to +-5 (x150) so a diverging affine state can
+never overflow exp (gains beyond that are not a camera's exposure change)."""
+SATURATED = 250.0
+DARK = 5.0
+"""Intensities at or above ``SATURATED`` or at or below ``DARK`` are clipped by the sensor:
+such target samples (and host pixels, ``HostPoints.create``) carry no residual (the
+affine brightness model does not hold there)."""
 
 
 @_njit
@@ -71,7 +81,7 @@ def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
         return False, q0, q1, q2, 0.0, 0.0
     u = K[0] * q0 / q2 + K[2]
     v = K[1] * q1 / q2 + K[3]
-    if not sample(stack, u, v, smp):
+    if not sample(stack, u, v, smp) or smp[0] >= SATURATED or smp[0] <= DARK:
         return False, q0, q1, q2, u, v
     gu = smp[1] * K[0] / q2
     gv = smp[2] * K[1] / q2
@@ -96,7 +106,7 @@ def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r,
     P = bearing.shape[1]
     smp = np.empty(3)
     dq = np.empty(3)
-    s = math.exp(ab_r[0])
+    s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
     Hrr = 0.0
     gr = 0.0
     cost = 0.0
@@ -127,7 +137,7 @@ def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, 
     P = bearing.shape[1]
     smp = np.empty(3)
     dq = np.empty(3)
-    s = math.exp(ab_j[0] - ab_h[0])
+    s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
     Hrr = 0.0
     gr = 0.0
     cost = 0.0
@@ -230,22 +240,24 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
             if tmask[p, m]:
                 _a, _b, _c, ss, nv = _temporal_rho(p, m, rp[p], bearing, Ii, wg, hvalid, imgs[m], K,
                                                    R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
-                if nv == nh and nv > 0:
+                if nv == 0:
+                    ms[p, m] = -1.0                   # out of the image: off for good
+                elif nv >= nh - 2:
                     ms[p, m] = math.sqrt(ss / nv)
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
     # the whole image fits worse (blur, a changed exposure not yet estimated)
     th = np.full(M, outlier_rms)
     for m in range(M):
-        col = ms[:, m][ok_p & np.isfinite(ms[:, m])]
+        col = ms[:, m][ok_p & np.isfinite(ms[:, m]) & (ms[:, m] >= 0.0)]
         if col.size:
             th[m] = max(outlier_rms, 2.0 * np.median(col))
     for p in range(N):
         if not alive[p]:
             continue
         if not ok_p[p]:
-            if update:
-                alive[p] = False
-            continue
+            if update and (rp[p] <= rho_min or rp[p] >= rho_max):
+                alive[p] = False            # depth out of range: for good
+            continue                        # stereo misfit: off at this linearization
         r_p = rp[p]
         Hrr = 0.0
         gr = 0.0
@@ -262,12 +274,14 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         for m in range(M):
             if not tmask[p, m]:
                 continue
-            if not ms[p, m] <= th[m]:
-                if update and not np.isfinite(ms[p, m]):
+            if ms[p, m] < 0.0:
+                if update:
                     tmask[p, m] = False     # left the image: for good
-                continue                    # misfit: off at this linearization only
+                continue
+            if not ms[p, m] <= th[m]:
+                continue                    # misfit or clipped: off at this linearization only
             any_t = True
-            s = math.exp(ab_t[m, 0] - ab_h[0])
+            s = math.exp(min(max(ab_t[m, 0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
             o = 8 * (m + 1)
             R = R_ji[m]
             t = t_ji[m]
@@ -355,9 +369,10 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
 
 
 @_njit
-def square_root_kernel(H, g, E, rel_eps):
-    """(r (n + 1,), J (n + 1, n)) with J^T J = H + eps I, J^T r = g, 0.5 |r|^2 = max(E, .):
-    Cholesky H + eps I = L L^T (eps = rel_eps * max diag H, for the gauge directions),
+def square_root_kernel(H, g, E, rel_eps, damp):
+    """(r (n + 1,), J (n + 1, n)) with J^T J = H + damp diag(H) + eps I, J^T r = g,
+    0.5 |r|^2 = max(E, .): Cholesky of that = L L^T (eps = rel_eps * max diag H, for the
+    gauge directions; damp a Marquardt damping of the factor's own step),
     J = L^T, r = L^-1 g, and a last row sqrt(2 E - |L^-1 g|^2) with a zero Jacobian."""
     n = H.shape[0]
     dmax = 0.0
@@ -366,7 +381,7 @@ def square_root_kernel(H, g, E, rel_eps):
     eps = rel_eps * max(dmax, 1e-300)
     L = np.zeros((n, n))
     for j in range(n):
-        s = H[j, j] + eps
+        s = H[j, j] * (1.0 + damp) + eps
         for k in range(j):
             s -= L[j, k] * L[j, k]
         d = math.sqrt(s) if s > eps else math.sqrt(eps)

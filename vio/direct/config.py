@@ -141,6 +141,10 @@ class PointsConfig:
     of E = E_d + lambda E_s. ``outlier_rms`` (intensity units): a (point, target) pair
     whose raw residual RMS exceeds it after the depth refinement is switched off for
     good (DSO's outlier state), likewise a point whose static stereo RMS does.
+    ``damping``: Marquardt damping mu diag(H) in each host factor's square-root form
+    (iSAM2 takes undamped Gauss-Newton steps; the photometric cost is convex only
+    within a pixel or two, so a damped step keeps the keyframes in the basin; it
+    vanishes at convergence since the gradient is left as is).
     ``affine_sigma`` (a, b) prior std of every keyframe's [a, b] around 0 (gauge and
     weak regularization). ``use_track_guess``: TrackFrame's pose replaces the IMU
     prediction as the keyframe's initial guess when it is ``ok`` and within
@@ -153,6 +157,7 @@ class PointsConfig:
     max_targets: int = 5
     min_visible: float = 0.3
     refine_iters: int = 2
+    damping: float = 0.01
     outlier_rms: float = 15.0
     sigma_I: float = 4.0
     grad_c: float = 50.0

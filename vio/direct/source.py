@@ -103,7 +103,7 @@ class PhotometricSource:
         pc = cfg.points
         self.params = HostParams(PhotometricParams(pc.sigma_I, pc.grad_c, pc.huber_k),
                                  pc.stereo_weight, pc.outlier_rms, pc.refine_iters,
-                                 1.0 / pc.max_depth_m, 1.0 / pc.min_depth_m)
+                                 1.0 / pc.max_depth_m, 1.0 / pc.min_depth_m, pc.damping)
         self.kfs: dict[int, KeyframeData] = {}
         self.hosts: dict[int, Host] = {}
         self.tracks: list[TrackRecord] = []

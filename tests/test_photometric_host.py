@@ -1,0 +1,144 @@
+"""The per-host photometric factor (``factors.photometric_host``): its Schur-reduced
+information and gradient against the full point-wise problem (inverse depths as
+variables, assembled from ``factors.photometric``'s pairwise residuals, whose Jacobians
+the shared suite checks numerically), with and without the depth refinement, the
+square-root form, and the outlier handling."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from cases_photometric import H, W, K, analytic_image, random_pose
+from factors.image_ops import BilinearImage
+from factors.photometric import (PhotometricParams, make_host_patch, sqrt_weights, stereo_eval,
+                                 temporal_eval)
+from factors.photometric_host import (HostParams, HostPoints, StereoHost, host_factor,
+                                      host_linearize, square_root)
+
+X = gtsam.symbol_shorthand.X
+A = gtsam.symbol_shorthand.A
+T_RL = gtsam.Pose3(gtsam.Rot3(), np.array([-0.11, 0.0, 0.0]))
+
+
+def _scene(seed: int, n: int = 25, m: int = 2):
+    rng = np.random.default_rng(seed)
+    imgs = [BilinearImage(analytic_image(rng).render()) for _ in range(m + 2)]
+    T_b_c = random_pose(rng, 0.3, 0.05)
+    T_h = random_pose(rng, 0.5, 1.0)
+    args = [T_h, np.array([0.1, 2.0])]
+    for _ in range(m):
+        args += [T_h.compose(gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.03),
+                                         rng.normal(size=3) * 0.08)), rng.normal([0, 0], [0.1, 3.0])]
+    uv = np.stack([rng.uniform(60, W - 60, n), rng.uniform(60, H - 60, n)], 1)
+    rho = rng.uniform(0.3, 1.0, n)
+    patch = make_host_patch(imgs[0], uv, K)
+    stereo = StereoHost(imgs[-1]._stack, K, T_RL, np.array([0.05, 3.0]))
+    return imgs, T_b_c, args, patch, rho, stereo
+
+
+def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp):
+    """Weighted (r, J) of every residual, columns [frames (8 (M + 1)), rho (N)]."""
+    M, N = (len(args) - 2) // 2, len(rho)
+    n = 8 * (M + 1)
+    rows, res = [], []
+    for m in range(M):
+        ev = temporal_eval(args[0], args[2 + 2 * m], rho, args[1], args[3 + 2 * m], patch,
+                           imgs[1 + m], K, T_b_c)
+        sw = sqrt_weights(ev, patch, pp)
+        o = 8 * (m + 1)
+        for i in range(N):
+            for k in range(patch.bearing.shape[1]):
+                row = np.zeros(n + N)
+                row[0:6], row[6:8] = ev.J["pose_i"][i, k], ev.J["ab_i"][i, k]
+                row[o:o + 6], row[o + 6:o + 8] = ev.J["pose_j"][i, k], ev.J["ab_j"][i, k]
+                row[n + i] = ev.J["rho"][i, k, 0]
+                rows.append(sw[i, k] * row)
+                res.append(sw[i, k] * ev.r[i, k])
+    ev = stereo_eval(rho, stereo.ab, patch, imgs[-1], K, T_RL)
+    sw = sqrt_weights(ev, patch, pp)
+    for i in range(N):
+        for k in range(patch.bearing.shape[1]):
+            row = np.zeros(n + N)
+            row[n + i] = ev.J["rho"][i, k, 0]
+            rows.append(sw[i, k] * row)
+            res.append(sw[i, k] * ev.r[i, k])
+    return np.array(res), np.array(rows), n
+
+
+def test_host_factor_is_the_schur_complement_of_the_pointwise_problem():
+    """Without depth refinement, Huber or outliers, the kernel's reduced H and g equal
+    H_xx - H_xr H_rr^-1 H_rx and g_x - H_xr H_rr^-1 g_r of the point-wise problem."""
+    imgs, T_b_c, args, patch, rho, stereo = _scene(3)
+    pp = PhotometricParams(4.0, 50.0, None)
+    params = HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0)
+    pts = HostPoints.create(patch, rho, 50.0, 4)
+    Hk, gk, E, red, used = host_linearize(args, pts, [im._stack for im in imgs[1:-1]], K, T_b_c,
+                                          params, stereo)
+    r, J, n = _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp)
+    Hf, gf = J.T @ J, J.T @ r
+    Hxr, Hrr = Hf[:n, n:], Hf[n:, n:]
+    Hs = Hf[:n, :n] - Hxr @ np.linalg.solve(Hrr, Hxr.T)
+    gs = gf[:n] - Hxr @ np.linalg.solve(Hrr, gf[n:])
+    assert used == len(rho)
+    np.testing.assert_allclose(E, 0.5 * r @ r, rtol=1e-12)
+    np.testing.assert_allclose(Hk, Hs, atol=1e-10 * np.abs(Hs).max())
+    np.testing.assert_allclose(gk, gs, atol=1e-10 * np.abs(gs).max())
+    red_full = 0.5 * r @ r - 0.5 * gf[n:] @ np.linalg.solve(Hrr, gf[n:])
+    np.testing.assert_allclose(red, red_full, rtol=1e-9)
+    rr, JJ = square_root(Hk, gk, red)
+    np.testing.assert_allclose(JJ.T @ JJ, Hk, atol=1e-8 * np.abs(Hk).max())
+    np.testing.assert_allclose(JJ.T @ rr, gk, atol=1e-8 * np.abs(gk).max())
+    np.testing.assert_allclose(0.5 * rr @ rr, red, rtol=1e-9)
+
+
+def test_host_factor_refines_depths_then_reduces_at_them():
+    """With depth refinement on, the factor linearizes at the refined inverse depths it
+    writes back: H and g equal the point-wise Schur complement at those depths, the
+    refinement lowers the energy, and the refined depths' gradient is ~0."""
+    imgs, T_b_c, args, patch, rho, stereo = _scene(4, n=15, m=1)
+    pp = PhotometricParams(4.0, 50.0, None)
+    stacks = [im._stack for im in imgs[1:-1]]
+    E0 = host_linearize(args, HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c,
+                        HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0), stereo)[2]
+    params = HostParams(pp, 1.0, 1e9, 3, 1e-3, 100.0)
+    pts = HostPoints.create(patch, rho, 50.0, 4)
+    Hk, gk, E, _, used = host_linearize(args, pts, stacks, K, T_b_c, params, stereo)
+    assert E < E0 and not np.array_equal(pts.rho, rho)
+    keep = pts.alive
+    assert used == keep.sum() >= 5
+    r, J, n = _full_problem(imgs, T_b_c, args, patch.subset(np.flatnonzero(keep)), pts.rho[keep],
+                            stereo, pp)
+    Hf, gf = J.T @ J, J.T @ r
+    Hxr, Hrr = Hf[:n, n:], Hf[n:, n:]
+    Hs = Hf[:n, :n] - Hxr @ np.linalg.solve(Hrr, Hxr.T)
+    gs = gf[:n] - Hxr @ np.linalg.solve(Hrr, gf[n:])
+    np.testing.assert_allclose(Hk, Hs, atol=1e-10 * np.abs(Hs).max())
+    np.testing.assert_allclose(gk, gs, atol=1e-10 * np.abs(gs).max())
+
+
+def test_host_factor_in_a_graph_and_outliers():
+    """The factor linearizes in a gtsam graph (dimension 8 (M + 1) + 1, error E*), and a
+    (point, target) pair whose pattern leaves the image is switched off."""
+    imgs, T_b_c, args, patch, rho, stereo = _scene(5, n=20, m=2)
+    params = HostParams(PhotometricParams(4.0, 50.0, 1.5), 1.0, 15.0, 2, 1e-3, 100.0)
+    pts = HostPoints.create(patch, rho, 50.0, 4)
+    keys = [X(0), A(0), X(1), A(1), X(2), A(2)]
+    f = host_factor(keys, pts, [im._stack for im in imgs[1:-1]], K, T_b_c, params, stereo)
+    v = gtsam.Values()
+    for key, a in zip(keys, args):
+        v.insert(key, a)
+    lin = f.linearize(v)
+    assert f.dim() == 8 * 3 + 1 and lin.rows() == 25
+    assert np.isfinite(f.error(v)) and f.error(v) > 0
+    assert pts.alive.all()
+    # a target that sees none of the points (moved 50 m sideways): its pairs are switched
+    # off for good and its frame block is empty; the other target is unaffected
+    far = list(args)
+    far[2] = args[2].compose(gtsam.Pose3(gtsam.Rot3(), np.array([50.0, 0.0, 0.0])))
+    pts2 = HostPoints.create(patch, rho, 50.0, 4)
+    H2, _, _, _, used = host_linearize(far, pts2, [im._stack for im in imgs[1:-1]], K, T_b_c,
+                                       params, stereo)
+    # (points sitting out this linearization as stereo misfits keep their flags)
+    assert pts2.tmask[:, 0].sum() <= len(rho) - used and pts2.tmask[:, 1].all() and used > 0
+    assert np.abs(H2[8:16, :]).max() == 0.0 and np.abs(H2[16:24, 16:24]).max() > 0.0
