@@ -15,8 +15,9 @@ the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
   the dynamic (visual-inertial) initialization aligns feature tracks, and the
   keyframe decisions of its buffered window use them. After that KLT is not run; the
   keyframe / stillness decisions of ``Pipeline`` (mean flow since the last keyframe,
-  number of common features) see ``FeatureFrame``s made of the points of the last two
-  keyframes (epipolar depths) projected into the frame with the IMU-propagated pose
+  number of common features) see ``FeatureFrame``s made of the live points of every
+  host in the window (their refined inverse depths, ``PhotometricSource.live_points``)
+  projected into the frame with the IMU-propagated pose
   since the newest keyframe (ids = keyframe * 1e6 + point index; points that leave the
   image drop out, so a view change also triggers a keyframe). These frames carry no
   measurement: nothing in them reaches the graph.
