@@ -101,43 +101,12 @@ def _huber(e2, k):
 
 
 @_njit
-def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k):
-    """Static stereo of point p at rho: (H_rr, g_r, cost, raw sum r^2, n valid)."""
+def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k):
+    """One term of point p at rho, residual I(warp) - b - s I_host (s: gain e^(a_j - a_h),
+    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid)."""
     P = bearing.shape[1]
     smp = np.empty(3)
     dq = np.empty(3)
-    s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    Hrr = 0.0
-    gr = 0.0
-    cost = 0.0
-    ss = 0.0
-    nv = 0
-    for k in range(P):
-        if not hvalid[p, k]:
-            continue
-        ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
-                                     R_rl, t_rl, K1, st_img, smp, dq)
-        if not ok:
-            continue
-        r = smp[0] - ab_r[1] - s * Ii[p, k]
-        jr = dq[0] * t_rl[0] + dq[1] * t_rl[1] + dq[2] * t_rl[2]
-        w = st_w * wg[p, k]
-        hw, c = _huber(w * r * r, huber_k)
-        Hrr += hw * w * jr * jr
-        gr += hw * w * jr * r
-        cost += c
-        ss += r * r
-        nv += 1
-    return Hrr, gr, cost, ss, nv
-
-
-@_njit
-def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k):
-    """Temporal term of point p in target m at rho: (H_rr, g_r, cost, raw sum r^2, n valid)."""
-    P = bearing.shape[1]
-    smp = np.empty(3)
-    dq = np.empty(3)
-    s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
     Hrr = 0.0
     gr = 0.0
     cost = 0.0
@@ -150,7 +119,7 @@ def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, 
                                      R, t, K, img, smp, dq)
         if not ok:
             continue
-        r = smp[0] - ab_j[1] - s * (Ii[p, k] - ab_h[1])
+        r = smp[0] - b - s * Ii[p, k]
         jr = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
         w = w0 * wg[p, k]
         hw, c = _huber(w * r * r, huber_k)
@@ -160,6 +129,20 @@ def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, 
         ss += r * r
         nv += 1
     return Hrr, gr, cost, ss, nv
+
+
+@_njit
+def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k):
+    """Static stereo of point p at rho (right affine ``ab_r`` relative to the left)."""
+    s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
+    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w, huber_k)
+
+
+@_njit
+def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k):
+    """Temporal term of point p in target m at rho: I_j - b_j - s (I_h - b_h)."""
+    s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
+    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0, huber_k)
 
 
 @_njit
