@@ -40,10 +40,11 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.anchor_noise import AnchorWhitening
-from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, anchor_jacobian_batch,
-                                check_model, project_batch, tangent_basis)
-from factors.robust import RobustKernel, block_sqrt_weights, reweight_blocks
-from factors.td_projection import shift_uv, td_project_batch
+from factors import track_kernel
+from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, check_model,
+                                project_batch, tangent_basis)
+from factors.robust import RobustKernel, block_sqrt_weights
+from factors.td_projection import td_project_batch
 
 
 @dataclass(frozen=True)
@@ -124,34 +125,49 @@ def _project(args: list, track: LandmarkTrack, model: str, use_td: bool) -> Proj
                          track.uv, model, track.basis)
 
 
+_EYE4, _EYE6 = np.eye(4), np.eye(6)
+
+
+@lru_cache(maxsize=256)
+def _layout(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``factors.track_kernel`` layout of a cam0-only track: observation o made by body
+    o + 1, no cam1 observation."""
+    return np.arange(1, n + 1, dtype=np.int64), np.zeros(n, dtype=np.bool_)
+
+
+def _kernel_eval(args: list, track: LandmarkTrack, model: str, sigma: float,
+                 robust: RobustKernel | None, use_td: bool, whiten: AnchorWhitening | None):
+    """``factors.track_kernel.evaluate`` of the track at ``args``."""
+    n = track.n
+    target, right = _layout(n)
+    bodies = np.array([T.matrix() for T in args[2:3 + n]])
+    return track_kernel.evaluate(bodies, target, right, _EYE4, _EYE6, args[1].matrix(),
+                                 float(args[0][0]), float(args[3 + n][0]) if use_td else None,
+                                 track.anchor_uv, track.anchor_vel, track.anchor_offset, track.uv,
+                                 track.vel, track.offset, track.basis, model, sigma, robust, whiten)
+
+
 def landmark_anchor_jacobian(args: list, track: LandmarkTrack, model: str = "pinhole",
                              use_td: bool = False) -> np.ndarray:
     """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`landmark_residual` order), for
     :func:`factors.anchor_noise.anchor_whitening`."""
-    n = track.n
-    Tjs = np.array([T.matrix() for T in args[3:3 + n]])
-    uv_i, uv_j = track.anchor_uv, track.uv
-    if use_td:
-        td = args[3 + n][0]
-        uv_i = shift_uv(uv_i, track.anchor_vel, track.anchor_offset, td)
-        uv_j = shift_uv(uv_j, track.vel, track.offset, td)
-    return anchor_jacobian_batch(args[2].matrix(), Tjs, args[1].matrix(), args[0][0], uv_i, uv_j,
-                                 model, track.basis).reshape(2 * n, 2)
+    return _kernel_eval(args, track, model, 1.0, None, use_td, None)[2].reshape(2 * track.n, 2)
 
 
 def _evaluate(args: list, track: LandmarkTrack, model: str, sigma: float,
               robust: RobustKernel | None, use_td: bool, weights: np.ndarray | None,
               whiten: AnchorWhitening | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Stacked residual (2n,) and Jacobian (2n, sum of key dims), key blocks side by side."""
+    """Stacked residual (2n,) and Jacobian (2n, sum of key dims), key blocks side by side.
+    Without frozen ``weights``: one compiled pass (``factors.track_kernel``)."""
     n = track.n
+    if weights is None:
+        robust = robust if robust is not None and robust.kind != "none" else None
+        r, J, _ = _kernel_eval(args, track, model, sigma, robust, use_td, whiten)
+        return r, J
     p = _project(args, track, model, use_td)
-    r, J = p.r, p.J
-    if weights is not None:
-        sw = np.sqrt(np.asarray(weights, dtype=float).reshape(n))
-        r = r * sw[:, None]
-        J *= np.repeat(sw, 2)[:, None]
-    elif robust is not None and robust.kind != "none":
-        reweight_blocks(r, J, sigma, robust)  # IRLS per 2-row block, weights from this r
+    sw = np.sqrt(np.asarray(weights, dtype=float).reshape(n))
+    r = p.r * sw[:, None]
+    J = p.J * np.repeat(sw, 2)[:, None]
     if whiten is not None:   # anchor noise (constant W, like a noise model)
         return whiten.apply(r.reshape(2 * n)), whiten.apply(J)
     return r.reshape(2 * n), J

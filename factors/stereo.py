@@ -33,10 +33,10 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.anchor_noise import AnchorWhitening
-from factors.projection import (COL_TJ, Projected, anchor_jacobian_batch, check_model, project_batch,
-                                tangent_basis)
-from factors.robust import RobustKernel, reweight_blocks
-from factors.td_projection import shift_uv, td_project_batch
+from factors import track_kernel
+from factors.projection import Projected, check_model, project_batch, tangent_basis
+from factors.robust import RobustKernel
+from factors.td_projection import td_project_batch
 
 
 @dataclass(frozen=True)
@@ -140,17 +140,23 @@ def _project(args: list, track: StereoTrack, model: str, use_td: bool) -> Projec
     return project_batch(Ti, Tjs, Tc, lam, track.anchor_uv, track.uv, model, track.basis)
 
 
+def _kernel_eval(args: list, track: StereoTrack, model: str, sigma: float,
+                 robust: RobustKernel | None, use_td: bool, whiten: AnchorWhitening | None):
+    """``factors.track_kernel.evaluate`` of the track at ``args``."""
+    k = len(track.keys)
+    bodies = np.array([T.matrix() for T in args[2:3 + k]])
+    return track_kernel.evaluate(bodies, track.target, track.right, track.C, track.ad_inv,
+                                 args[1].matrix(), float(args[0][0]),
+                                 float(args[3 + k][0]) if use_td else None, track.anchor_uv,
+                                 track.anchor_vel, track.anchor_offset, track.uv, track.vel,
+                                 track.offset, track.basis, model, sigma, robust, whiten)
+
+
 def stereo_anchor_jacobian(args: list, track: StereoTrack, model: str = "pinhole",
                            use_td: bool = False) -> np.ndarray:
     """``G = dr/duv_anchor`` (2n, 2) at ``args`` (:func:`stereo_residual` order), for
     :func:`factors.anchor_noise.anchor_whitening`."""
-    uv_i, uv_j = track.anchor_uv, track.uv
-    if use_td:
-        td = float(args[3 + len(track.keys)][0])
-        uv_i = shift_uv(uv_i, track.anchor_vel, track.anchor_offset, td)
-        uv_j = shift_uv(uv_j, track.vel, track.offset, td)
-    return anchor_jacobian_batch(args[2].matrix(), _virtual_bodies(args, track), args[1].matrix(),
-                                 float(args[0][0]), uv_i, uv_j, model, track.basis).reshape(2 * track.n, 2)
+    return _kernel_eval(args, track, model, 1.0, None, use_td, None)[2].reshape(2 * track.n, 2)
 
 
 def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigma: float = 1.0,
@@ -160,28 +166,14 @@ def stereo_residual(args: list, track: StereoTrack, model: str = "pinhole", sigm
 
     ``args``: ``[lambda (1,), T_b_c0, T_anchor, T_m1..T_mk]`` (+ ``td (1,)``); ``whiten``:
     constant whitening applied last (anchor noise, :func:`factors.anchor_noise.anchor_whitening`).
+    One compiled pass (``factors.track_kernel``): each observation's body block
+    (the virtual body ``T C`` for cam1) is mapped through ``Ad(C^-1)`` onto its body key's
+    columns (the anchor's: 7), then the robust weights and the whitening.
     """
-    n, k = track.n, len(track.keys)
-    p = _project(args, track, model, use_td)
-    J = np.zeros((2 * n, COL_TJ + 6 * k + (1 if use_td else 0)), order="F")
-    J[:, :COL_TJ] = p.J[:, :COL_TJ]
-    if use_td:
-        J[:, -1] = p.J[:, -1]
-    # observation i's 2x6 body block sits at columns COL_TJ + 6i of the batch Jacobian;
-    # map it through Ad(C^-1) for cam1 and onto its body key's columns (anchor: 7)
-    i = np.arange(n)
-    blocks = p.J[:, COL_TJ:COL_TJ + 6 * n].reshape(n, 2, n, 6)[i, :, i, :]
-    if track.right.any():
-        blocks[track.right] = blocks[track.right] @ track.ad_inv
-    c0 = np.where(track.target == 0, 7, COL_TJ + 6 * (track.target - 1))
-    rows = (2 * i[:, None] + np.arange(2))[:, :, None]
-    J[rows, (c0[:, None] + np.arange(6))[:, None, :]] += blocks
-    r = p.r.copy()
-    if robust is not None and robust.kind != "none":
-        reweight_blocks(r, J, sigma, robust)
-    if whiten is not None:
-        return whiten.apply(r.reshape(2 * n)), whiten.apply(J)
-    return r.reshape(2 * n), J
+    check_model(model)
+    robust = robust if robust is not None and robust.kind != "none" else None
+    r, J, _ = _kernel_eval(args, track, model, sigma, robust, use_td, whiten)
+    return r, J
 
 
 def stereo_factor(track: StereoTrack, lam_key: int, extrinsic_key: int, sigma: float,

@@ -13,8 +13,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from factors.landmark import landmark_anchor_jacobian, landmark_factor, make_track
-from factors.anchor_noise import AnchorWhitening, anchor_whitening
+from factors.landmark import landmark_anchor_jacobian, landmark_factor, landmark_residual, make_track
+from factors.anchor_noise import AnchorWhitening
+from factors.track_kernel import whitening
 from factors.reanchor import depth_transfer_factor
 from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis
 from factors.robust import RobustKernel, reweight_blocks
@@ -118,7 +119,9 @@ def _whitening(anchor_jacobian, track, at: LinPoint | None, body_poses: list[gts
     if at is None or not cfg.vision.anchor_noise:
         return None
     args = [np.array([at.lam]), at.T_b_c, *body_poses] + ([np.array([at.td])] if td_key is not None else [])
-    return anchor_whitening(anchor_jacobian(args, track, cfg.vision.model, td_key is not None))
+    # closed-form 2x2 eigen-decomposition (factors.track_kernel.whitening): equal to
+    # factors.anchor_noise.anchor_whitening to rounding, without eigh's ~25 us of overhead
+    return whitening(anchor_jacobian(args, track, cfg.vision.model, td_key is not None))
 
 
 def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, sigma: float,
@@ -350,4 +353,11 @@ def compile_kernels() -> None:
     p = project_batch(T, T[None], T, 1.0, np.zeros(2), uv, "pinhole", B, np.zeros(2), uv)
     anchor_jacobian_batch(T, T[None], T, 1.0, np.zeros(2), uv, "pinhole", B)
     reweight_blocks(p.r, p.J, 1.0, RobustKernel("huber", 3.0))
+    lm = make_track(0, np.zeros(2), [1], uv)
+    args = [np.ones(1), gtsam.Pose3(), gtsam.Pose3(), gtsam.Pose3(), np.zeros(1)]
+    for use_td in (False, True):   # factors.track_kernel, with and without whitening
+        W = whitening(landmark_anchor_jacobian(args, lm, "pinhole", use_td))
+        for w in (None, W):
+            landmark_residual(args[:4] + args[4:] * use_td, lm, "pinhole", 1.0,
+                              RobustKernel("huber", 3.0), use_td, whiten=w)
     image_velocity(uv, np.ones(1), np.zeros((1, 3)), np.zeros((1, 3)))
