@@ -91,3 +91,48 @@ def test_image_velocity_rows_match_the_broadcast_formula():
     rows = graph.image_velocity(uv, z, w, v)            # compiled path
     single = np.array([graph.image_velocity(uv[i], z[i], w[i], v[i]) for i in range(7)])
     assert np.array_equal(rows, single)
+
+
+def _predicted_reference(idx, uv, meas, has_r, ruv, rmeas, R, t, w, v, lam, R10, t01, zmin, gate):
+    """The numpy formulation the compiled vio.backend.td_velocity kernel replaced."""
+    def gated(uv, z, w_c, v_c, meas):
+        out = np.zeros_like(meas)
+        ok = z > zmin
+        if ok.any():
+            p = graph.image_velocity(uv[ok], z[ok], w_c[ok], v_c[ok])
+            good = np.linalg.norm(p - meas[ok], axis=1) < gate
+            out[np.flatnonzero(ok)[good]] = p[good]
+        return out
+    a = np.array([uv[0, 0], uv[0, 1], 1.0]) / lam
+    p_w = R[idx[0]] @ a + t[idx[0]]
+    p_c = np.einsum("nji,nj->ni", R[idx], p_w - t[idx])
+    vel = gated(uv, p_c[:, 2], w[idx], v[idx], meas)
+    rvel = np.zeros_like(vel)
+    z1 = (p_c[has_r] - t01) @ R10[2]
+    w1 = w[idx][has_r] @ R10.T
+    v1 = (v[idx][has_r] + np.cross(w[idx][has_r], t01)) @ R10.T
+    rvel[has_r] = gated(ruv[has_r], z1, w1, v1, rmeas[has_r])
+    return vel, rvel
+
+
+def test_predicted_velocities_kernel_matches_numpy():
+    from vio.backend.td_velocity import predicted_velocities
+    rng = np.random.default_rng(2)
+    K, n = 6, 5
+    R = np.array([gtsam.Rot3.Expmap(rng.normal(0, 0.1, 3)).matrix() for _ in range(K)])
+    t = rng.normal(0, 0.2, (K, 3))
+    w, v = rng.normal(0, 0.5, (K, 3)), rng.normal(0, 0.5, (K, 3))
+    idx = np.array([1, 2, 3, 4, 5], np.int64)
+    uv, ruv = rng.normal(0, 0.2, (n, 2)), rng.normal(0, 0.2, (n, 2))
+    C = gtsam.Pose3(gtsam.Rot3.Expmap(np.array([0.01, 0.0, 0.02])), np.array([0.11, 0.0, 0.0]))
+    R10, t01 = C.rotation().matrix().T.copy(), C.translation()
+    for lam, gate in [(0.5, 5.0), (0.5, 0.3), (-0.5, 5.0), (20.0, 5.0)]:
+        meas = rng.normal(0, 0.3, (n, 2))
+        rmeas = rng.normal(0, 0.3, (n, 2))
+        has_r = np.array([True, False, True, True, False])
+        ref = _predicted_reference(idx, uv, meas, has_r, ruv, rmeas, R, t, w, v, lam, R10, t01, 0.1, gate)
+        vel, rvel = np.empty((n, 2)), np.empty((n, 2))
+        predicted_velocities(idx, uv, meas, has_r, ruv, rmeas, R, t, w, v, lam, R10, t01, 0.1, gate,
+                             vel, rvel)
+        assert np.allclose(vel, ref[0], rtol=1e-12, atol=1e-14)
+        assert np.allclose(rvel, ref[1], rtol=1e-12, atol=1e-14)

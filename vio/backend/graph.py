@@ -23,6 +23,7 @@ from factors.stereo import StereoRig, make_stereo_track, stereo_anchor_jacobian,
 from vio.backend.config import BackendConfig, CalibConfig, InitConfig
 from vio.backend.init import InitialState
 from vio.backend.landmarks import Track
+from vio.backend.td_velocity import predicted_velocities
 
 try:
     from numba import njit as _numba_njit
@@ -361,3 +362,6 @@ def compile_kernels() -> None:
             landmark_residual(args[:4] + args[4:] * use_td, lm, "pinhole", 1.0,
                               RobustKernel("huber", 3.0), use_td, whiten=w)
     image_velocity(uv, np.ones(1), np.zeros((1, 3)), np.zeros((1, 3)))
+    z2, z3 = np.zeros((1, 2)), np.zeros((1, 3))
+    predicted_velocities(np.zeros(1, np.int64), z2, z2, np.ones(1, np.bool_), z2, z2, T[None, :3, :3].copy(),
+                         z3, z3, z3, 1.0, np.eye(3), np.zeros(3), 0.1, 5.0, z2.copy(), z2.copy())

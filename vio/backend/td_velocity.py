@@ -1,0 +1,90 @@
+"""Predicted image velocities of a landmark's observations, for the td term
+(``VisionConfig.td_velocity = "predicted"``; ``LandmarkManager._predicted_velocities``).
+
+One compiled pass per landmark: the point from the anchor ray and inverse depth, its
+depth in each observing camera (cam0 and, with stereo, cam1), the image velocity of a
+static point seen by the moving camera (``vio.backend.graph.image_velocity``), and the
+gate against the measured velocity. Replaces ~25 small numpy calls per landmark; the
+arithmetic is the same, so the results equal the numpy formulation to rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:
+    from numba import njit as _numba_njit
+
+    def _njit(fn):  # noqa: D103 - compiled once, cached on disk
+        return _numba_njit(cache=True, nogil=True)(fn)
+except ImportError:  # pragma: no cover - plain Python without numba
+    def _njit(fn):  # noqa: D103
+        return fn
+
+
+@_njit
+def _velocity(u: float, v: float, z: float, w: np.ndarray, vel: np.ndarray, out: np.ndarray) -> None:
+    """Image velocity (2,) of a static point at normalized ``(u, v)``, depth ``z`` (m), seen
+    by a camera with angular ``w`` (3,) and linear ``vel`` (3,) velocity (camera frame)."""
+    out[0] = (-vel[0] + u * vel[2]) / z + u * v * w[0] - (1 + u * u) * w[1] + v * w[2]
+    out[1] = (-vel[1] + v * vel[2]) / z + (1 + v * v) * w[0] - u * v * w[1] - u * w[2]
+
+
+@_njit
+def _gate(p: np.ndarray, meas: np.ndarray, gate: float, out: np.ndarray) -> None:
+    dx, dy = p[0] - meas[0], p[1] - meas[1]
+    if np.sqrt(dx * dx + dy * dy) < gate:
+        out[0], out[1] = p[0], p[1]
+    else:
+        out[0], out[1] = 0.0, 0.0
+
+
+@_njit
+def predicted_velocities(idx: np.ndarray, uv: np.ndarray, meas: np.ndarray, has_r: np.ndarray,
+                         ruv: np.ndarray, rmeas: np.ndarray, R: np.ndarray, t: np.ndarray,
+                         w: np.ndarray, v: np.ndarray, lam: float, R10: np.ndarray,
+                         t01: np.ndarray, min_depth: float, gate: float, vel: np.ndarray,
+                         rvel: np.ndarray) -> None:
+    """Fill ``vel`` (n, 2) and ``rvel`` (n, 2) (zeros where no prediction passes).
+
+    Observation o is made in window row ``idx[o]`` (``idx[0]``: the anchor, whose cam0
+    ray ``uv[0]`` at inverse depth ``lam`` gives the point); ``R`` (K, 3, 3) / ``t``
+    (K, 3): ``R_w_c`` / ``t_w_c`` of cam0; ``w`` / ``v`` (K, 3): cam0 angular / linear
+    velocity in cam0; ``meas`` (n, 2) the measured cam0 velocities; cam1 where ``has_r``:
+    ``ruv``, ``rmeas`` (n, 2), ``R10`` = ``R_c1_c0`` (3, 3), ``t01`` = ``t_c0_c1`` (3,).
+    A prediction counts where the depth exceeds ``min_depth`` and it is within ``gate``
+    (1/s) of the measurement."""
+    i0 = idx[0]
+    a = np.array([uv[0, 0] / lam, uv[0, 1] / lam, 1.0 / lam])
+    pw = np.empty(3)
+    for r in range(3):
+        pw[r] = R[i0, r, 0] * a[0] + R[i0, r, 1] * a[1] + R[i0, r, 2] * a[2] + t[i0, r]
+    pc, p, wc, vc, w1, v1 = (np.empty(3), np.empty(2), np.empty(3), np.empty(3), np.empty(3),
+                             np.empty(3))
+    for o in range(uv.shape[0]):
+        f = idx[o]
+        for c in range(3):
+            pc[c] = (R[f, 0, c] * (pw[0] - t[f, 0]) + R[f, 1, c] * (pw[1] - t[f, 1])
+                     + R[f, 2, c] * (pw[2] - t[f, 2]))
+        if pc[2] > min_depth:
+            _velocity(uv[o, 0], uv[o, 1], pc[2], w[f], v[f], p)
+            _gate(p, meas[o], gate, vel[o])
+        else:
+            vel[o, 0], vel[o, 1] = 0.0, 0.0
+        rvel[o, 0], rvel[o, 1] = 0.0, 0.0
+        if not has_r[o]:
+            continue
+        z1 = 0.0
+        for c in range(3):
+            z1 += (pc[c] - t01[c]) * R10[2, c]
+        if not z1 > min_depth:
+            continue
+        wc[:] = w[f]
+        vc[0] = v[f, 0] + (wc[1] * t01[2] - wc[2] * t01[1])
+        vc[1] = v[f, 1] + (wc[2] * t01[0] - wc[0] * t01[2])
+        vc[2] = v[f, 2] + (wc[0] * t01[1] - wc[1] * t01[0])
+        for r in range(3):
+            w1[r] = R10[r, 0] * wc[0] + R10[r, 1] * wc[1] + R10[r, 2] * wc[2]
+            v1[r] = R10[r, 0] * vc[0] + R10[r, 1] * vc[1] + R10[r, 2] * vc[2]
+        _velocity(ruv[o, 0], ruv[o, 1], z1, w1, v1, p)
+        _gate(p, rmeas[o], gate, rvel[o])
