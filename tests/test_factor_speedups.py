@@ -136,3 +136,40 @@ def test_predicted_velocities_kernel_matches_numpy():
                              vel, rvel)
         assert np.allclose(vel, ref[0], rtol=1e-12, atol=1e-14)
         assert np.allclose(rvel, ref[1], rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("stereo_track,frames", [(False, [3, 4, 6, 7]), (True, [3, 4, 6, 7]), (True, [3])])
+def test_track_factor_equals_the_stereo_and_landmark_builders(stereo_track, frames):
+    """vio.backend.track_factor linearizes exactly as graph.build_stereo_factor /
+    build_landmark_factor (td, Huber, anchor whitening on); also a stereo track seen
+    only in its anchor keyframe."""
+    from vio.backend.track_factor import build_track_factor
+    rng = np.random.default_rng(4)
+    obs = {}
+    for f in frames:
+        right = stereo_track and f != 6
+        obs[f] = Obs(rng.normal(0, 0.2, 2), rng.normal(0, 0.3, 2), 50.0 * f,
+                     rng.normal(0, 0.2, 2) if right else None, rng.normal(0, 0.3, 2) if right else None)
+    tr = Track(9, obs, graph.L(9), 3)
+    C = gtsam.Pose3(gtsam.Rot3.Expmap(np.array([0.01, 0.0, -0.02])), np.array([0.11, 0.0, 0.0]))
+    rig = graph.stereo_rig(C)
+    poses = {f: _pose(rng) for f in frames}
+    at = graph.LinPoint(0.4, _pose(rng, 0.05), poses, 0.002)
+    vel, rvel = rng.normal(0, 0.3, (len(frames), 2)), rng.normal(0, 0.3, (len(frames), 2))
+    vals = gtsam.Values()
+    for f, P in poses.items():
+        vals.insert(graph.X(f), P)
+    vals.insert(graph.EXTRINSIC, _pose(rng, 0.05))
+    vals.insert(graph.TD, np.array([0.003]))
+    vals.insert(tr.key, np.array([0.35]))
+    cfg = BackendConfig()
+    ref = (graph.build_stereo_factor(tr, rig, cfg, 1e-3, 1e-5, vel, rvel, at, frames) if stereo_track
+           else graph.build_landmark_factor(tr, frames, cfg, 1e-3, 1e-5, vel, at))
+    shift_ref = {f: (v.copy(), o) for f, (v, o) in tr.td_shift.items()}
+    got = build_track_factor(tr, frames, rig, cfg, 1e-3, 1e-5, vel, rvel, at)
+    assert list(got.keys()) == list(ref.keys())
+    a, b = ref.linearize(vals), got.linearize(vals)
+    assert np.array_equal(a.jacobian()[0], b.jacobian()[0]) and np.array_equal(a.jacobian()[1], b.jacobian()[1])
+    assert ref.error(vals) == got.error(vals)
+    assert all(np.array_equal(shift_ref[f][0], tr.td_shift[f][0]) and shift_ref[f][1] == tr.td_shift[f][1]
+               for f in frames)

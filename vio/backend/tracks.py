@@ -20,6 +20,7 @@ import numpy as np
 from vio.backend import graph
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.td_velocity import predicted_velocities
+from vio.backend.track_factor import build_track_factor
 from vio.io.types import FeatureFrame
 
 if TYPE_CHECKING:
@@ -211,13 +212,10 @@ class LandmarkManager:
                 self._calib_cache = (vals.atPose3(graph.EXTRINSIC), float(vals.atVector(graph.TD)[0]))
             T_b_c, td = self._calib_cache
             at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
-        if self.est.C_stereo is not None and any(tr.obs[f].right_uv is not None for f in frames):
-            if self._rig is None:
-                self._rig = graph.stereo_rig(self.est.C_stereo)
-            return graph.build_stereo_factor(tr, self._rig, self.est.cfg, self.est.sigma,
-                                             cam.line_time_s, vel, rvel, at, frames)
-        return graph.build_landmark_factor(tr, frames, self.est.cfg, self.est.sigma, cam.line_time_s,
-                                           vel, at)
+        if self._rig is None and self.est.C_stereo is not None:
+            self._rig = graph.stereo_rig(self.est.C_stereo)
+        return build_track_factor(tr, frames, self._rig, self.est.cfg, self.est.sigma, cam.line_time_s,
+                                  vel, rvel, at)
 
     def _predicted_velocities(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
                               lam: float) -> tuple[np.ndarray, np.ndarray | None]:

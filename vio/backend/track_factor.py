@@ -1,0 +1,114 @@
+"""The factor of one landmark over its cam0 and cam1 observations, built in one pass.
+
+Same factor as ``graph.build_stereo_factor`` (a track with cam1 matches) and
+``graph.build_landmark_factor`` (cam0 only): keys ``[L, T_b_c, X(anchor), X(f1..fk)]``
+(+ ``td``), residuals of the cam0 observations of the non-anchor keyframes, then of the
+cam1 observations of every keyframe that has one, evaluated by
+``factors.track_kernel`` (cam1 as cam0 of the virtual body ``T_w_b C``). Those builders
+went through ``make_track`` / ``make_stereo_track``, ``_cam0_shifts`` and the
+anchor-Jacobian helpers, ~40 small numpy and Python calls per landmark at every keyframe
+(~17 % of the backend's time on real MH_01 stereo); here the arrays are gathered once.
+The numbers are those of the two builders (same kernel, same inputs;
+tests/test_factor_speedups.py compares the linearizations).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from factors import track_kernel
+from factors.adapter import custom_factor
+from factors.projection import tangent_basis
+from factors.stereo import StereoRig
+from vio.backend import graph
+from vio.backend.config import BackendConfig
+from vio.backend.landmarks import Track
+
+_EYE4, _EYE6 = np.eye(4), np.eye(6)
+_NOISE: dict[tuple[int, float], gtsam.noiseModel.Base] = {}
+
+
+def _noise(m: int, sigma: float) -> gtsam.noiseModel.Base:
+    """Isotropic noise of dimension m (shared: GTSAM noise models are immutable)."""
+    key = (m, sigma)
+    if key not in _NOISE:
+        _NOISE[key] = gtsam.noiseModel.Isotropic.Sigma(m, sigma)
+    return _NOISE[key]
+
+
+def _capped(vel: np.ndarray, vmax: float) -> np.ndarray:
+    """A copy of ``vel`` (n, 2) with rows faster than ``vmax`` zeroed (no td term)."""
+    vel = np.array(vel, float).reshape(-1, 2)
+    vel[~(np.sqrt(vel[:, 0] * vel[:, 0] + vel[:, 1] * vel[:, 1]) <= vmax)] = 0.0
+    return vel
+
+
+def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, cfg: BackendConfig,
+                       sigma: float, line_time_s: float, vel: np.ndarray | None = None,
+                       rvel: np.ndarray | None = None,
+                       at: graph.LinPoint | None = None) -> gtsam.NonlinearFactor:
+    """The landmark factor of ``track`` over ``frames`` (anchor first).
+
+    ``rig``: the stereo rig (None: cam1 observations are ignored, mono); ``sigma``
+    (normalized units) the observation noise; ``vel`` / ``rvel`` (n, 2): cam0 /
+    cam1 td velocities of the observations in ``frames`` (default: the measured ones;
+    ``rvel`` rows without a cam1 match are ignored); ``at``: the estimate for the
+    anchor-noise whitening (none without it). Records ``track.td_shift`` (cam0 velocity,
+    row offset per frame) as ``graph._cam0_shifts`` does.
+    """
+    robust, td_key = graph._vision_options(cfg)
+    vc = cfg.vision
+    obs = [track.obs[f] for f in frames]
+    n0 = len(obs)
+    rows = np.array([o.row for o in obs], float)
+    off = np.where(np.isfinite(rows), rows * line_time_s, 0.0)
+    v0 = _capped(np.array([o.velocity for o in obs]) if vel is None else vel, vc.td_velocity_max)
+    track.td_shift = {f: (v0[i], float(off[i])) for i, f in enumerate(frames)}
+    st_i = [i for i, o in enumerate(obs) if o.right_uv is not None] if rig is not None else []
+    n1 = len(st_i)
+    n = n0 - 1 + n1
+    if n == 0:
+        raise ValueError("landmark track has no observation outside its anchor frame")
+    uv = np.empty((n, 2))
+    if n0 > 1:
+        uv[:n0 - 1] = [o.uv for o in obs[1:]]
+    vel_all = np.empty((n, 2))
+    vel_all[:n0 - 1] = v0[1:]
+    target = np.empty(n, np.int64)
+    target[:n0 - 1] = np.arange(1, n0)
+    right = np.zeros(n, np.bool_)
+    offset = np.empty(n)
+    offset[:n0 - 1] = off[1:]
+    if n1:
+        uv[n0 - 1:] = [obs[i].right_uv for i in st_i]
+        rv = np.array([obs[i].right_velocity for i in st_i]) if rvel is None else np.asarray(rvel)[st_i]
+        vel_all[n0 - 1:] = _capped(rv, vc.td_velocity_max)
+        target[n0 - 1:] = st_i
+        right[n0 - 1:] = True
+        offset[n0 - 1:] = off[st_i]
+    C, ad_inv = (rig.C, rig.ad_inv) if n1 else (_EYE4, _EYE6)
+    a_uv, a_vel, a_off = np.array(obs[0].uv, float), v0[0].copy(), float(off[0])
+    basis = tangent_basis(uv)
+    model = vc.model
+    use_td = td_key is not None
+    W = None
+    if at is not None and vc.anchor_noise:
+        bodies = np.array([at.poses[f].matrix() for f in frames])
+        G = track_kernel.evaluate(bodies, target, right, C, ad_inv, at.T_b_c.matrix(), at.lam,
+                                  at.td if use_td else None, a_uv, a_vel, a_off, uv, vel_all,
+                                  offset, basis, model, sigma, None, None)[2]
+        W = track_kernel.whitening(G)
+    k = n0 - 1
+    fkeys = [int(track.key), graph.EXTRINSIC] + [graph.X(f) for f in frames] + ([int(td_key)] if use_td else [])
+    kinds = [1, "pose3", "pose3"] + ["pose3"] * k + ([1] if use_td else [])
+
+    def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
+        bodies = np.array([T.matrix() for T in args[2:3 + k]])
+        r, J, _ = track_kernel.evaluate(bodies, target, right, C, ad_inv, args[1].matrix(),
+                                        float(args[0][0]), float(args[3 + k][0]) if use_td else None,
+                                        a_uv, a_vel, a_off, uv, vel_all, offset, basis, model,
+                                        sigma, robust, W)
+        return r, J
+
+    return custom_factor(_noise(2 * n, float(sigma)), fkeys, kinds, fn)
