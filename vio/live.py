@@ -24,8 +24,6 @@ import fcntl
 import logging
 import queue
 import select
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -36,7 +34,7 @@ import numpy as np
 
 from vio.imu import combined_params, integrate
 from vio.io.types import CameraCalib, ImuCalib, ImuData
-from vio.overlap import WorkerError, _recv, _send, _shutdown
+from vio.overlap import WorkerError, _recv, _send, _shutdown, _worker_process
 from vio.pipeline import FrameOutput, Pipeline, PipelineConfig
 from vio.sync import FramePacket
 
@@ -97,8 +95,7 @@ class LivePipeline:
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._pending = 0
         self._clock: tuple[float, int] | None = None   # (wall s, data ns) of the first packet
-        self._proc = subprocess.Popen([sys.executable, "-m", "vio.overlap"], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE)
+        self._proc = _worker_process()
         for stream in (self._proc.stdin, self._proc.stdout):
             try:
                 fcntl.fcntl(stream.fileno(), 1031, _PIPE_BYTES)   # F_SETPIPE_SZ

@@ -41,18 +41,30 @@ class WorkerError(RuntimeError):
 
 def _send(stream: IO[bytes], obj: Any) -> None:
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-    stream.write(_HEADER.pack(len(data)) + data)
+    view = memoryview(_HEADER.pack(len(data)) + data)
+    while view:   # an unbuffered (raw) stream may write part of it
+        n = stream.write(view)
+        view = view[n if n is not None else 0:]
     stream.flush()
 
 
 def _read_exact(stream: IO[bytes], n: int) -> bytes:
-    buf = b""
+    buf = bytearray()
     while len(buf) < n:
         chunk = stream.read(n - len(buf))
         if not chunk:
             raise EOFError
         buf += chunk
-    return buf
+    return bytes(buf)
+
+
+def _worker_process() -> subprocess.Popen:
+    """``python -m vio.overlap`` with unbuffered pipes: the parent waits for replies with
+    ``select`` on the pipe, which cannot see bytes a buffered reader has already pulled
+    in (two replies read at once left the second one unseen: ``LivePipeline.close``
+    then waited forever, and ``overlapped`` would time out on its last result)."""
+    return subprocess.Popen([sys.executable, "-m", "vio.overlap"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, bufsize=0)
 
 
 def _recv(stream: IO[bytes]) -> Any:
@@ -108,8 +120,7 @@ def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
     are. At most ``depth`` packets are in flight; ``timeout_s`` is the longest wait
     for one result.
     """
-    proc = subprocess.Popen([sys.executable, "-m", "vio.overlap"], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE)
+    proc = _worker_process()
     pending: deque[int] = deque()
     source = iter(packets)
     try:
