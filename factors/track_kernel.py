@@ -70,7 +70,7 @@ def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.
     Tj, Rj, tj = np.empty((4, 4)), np.empty((3, 3)), np.empty(3)
     Q, M, D = np.empty(3), np.empty((3, 3)), np.empty((3, 19))
     dQ, duv, ra, uj = np.empty((2, 3)), np.empty((2, 2)), np.empty(2), np.empty(2)
-    blk, mapped = np.empty((2, 6)), np.empty((2, 6))
+    blk = np.empty((2, 6))
     tdcol = J.shape[1] - 1
     for o in range(n):
         _virtual_body(bodies, target[o], right[o], C, Tj)
@@ -102,20 +102,26 @@ def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.
             if use_td:
                 J[row, tdcol] = -(G[o, k, 0] * anchor_vel[0] + G[o, k, 1] * anchor_vel[1]
                                   + duv[k, 0] * vel[o, 0] + duv[k, 1] * vel[o, 1])
-        if not ok:
-            continue
-        c0 = 7 if target[o] == 0 else COL_TJ + 6 * (target[o] - 1)
-        for k in range(2):
-            for c in range(6):
-                if right[o]:
-                    s = 0.0
-                    for e in range(6):
-                        s += blk[k, e] * ad_inv[e, c]
-                    mapped[k, c] = s
-                else:
-                    mapped[k, c] = blk[k, c]
-                J[2 * o + k, c0 + c] += mapped[k, c]
+        if ok:
+            _add_body_block(J, 2 * o, target[o], right[o], blk, ad_inv)
     _reweight_whiten(r, J, sigma, kind, kk, U, d)
+
+
+@_njit
+def _add_body_block(J: np.ndarray, row: int, t: int, right: bool, blk: np.ndarray,
+                    ad_inv: np.ndarray) -> None:
+    """Add an observation's 2x6 body block ``blk`` (times ``Ad(C^-1)`` for cam1) onto
+    rows ``row, row + 1`` and the columns of body ``t`` (the anchor's: 7)."""
+    c0 = 7 if t == 0 else COL_TJ + 6 * (t - 1)
+    for k in range(2):
+        for c in range(6):
+            if right:
+                s = 0.0
+                for e in range(6):
+                    s += blk[k, e] * ad_inv[e, c]
+            else:
+                s = blk[k, c]
+            J[row + k, c0 + c] += s
 
 
 @_njit

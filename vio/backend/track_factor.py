@@ -60,34 +60,11 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
     robust, td_key = graph._vision_options(cfg)
     vc = cfg.vision
     obs = [track.obs[f] for f in frames]
-    n0 = len(obs)
     rows = np.array([o.row for o in obs], float)
     off = np.where(np.isfinite(rows), rows * line_time_s, 0.0)
     v0 = _capped(np.array([o.velocity for o in obs]) if vel is None else vel, vc.td_velocity_max)
     track.td_shift = {f: (v0[i], float(off[i])) for i, f in enumerate(frames)}
-    st_i = [i for i, o in enumerate(obs) if o.right_uv is not None] if rig is not None else []
-    n1 = len(st_i)
-    n = n0 - 1 + n1
-    if n == 0:
-        raise ValueError("landmark track has no observation outside its anchor frame")
-    uv = np.empty((n, 2))
-    if n0 > 1:
-        uv[:n0 - 1] = [o.uv for o in obs[1:]]
-    vel_all = np.empty((n, 2))
-    vel_all[:n0 - 1] = v0[1:]
-    target = np.empty(n, np.int64)
-    target[:n0 - 1] = np.arange(1, n0)
-    right = np.zeros(n, np.bool_)
-    offset = np.empty(n)
-    offset[:n0 - 1] = off[1:]
-    if n1:
-        uv[n0 - 1:] = [obs[i].right_uv for i in st_i]
-        rv = np.array([obs[i].right_velocity for i in st_i]) if rvel is None else np.asarray(rvel)[st_i]
-        vel_all[n0 - 1:] = _capped(rv, vc.td_velocity_max)
-        target[n0 - 1:] = st_i
-        right[n0 - 1:] = True
-        offset[n0 - 1:] = off[st_i]
-    C, ad_inv = (rig.C, rig.ad_inv) if n1 else (_EYE4, _EYE6)
+    uv, vel_all, target, right, offset, C, ad_inv = _layout(obs, v0, off, rig, rvel, vc.td_velocity_max)
     a_uv, a_vel, a_off = np.array(obs[0].uv, float), v0[0].copy(), float(off[0])
     basis = tangent_basis(uv)
     model = vc.model
@@ -99,7 +76,7 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
                                   at.td if use_td else None, a_uv, a_vel, a_off, uv, vel_all,
                                   offset, basis, model, sigma, None, None)[2]
         W = track_kernel.whitening(G)
-    k = n0 - 1
+    k = len(frames) - 1
     fkeys = [int(track.key), graph.EXTRINSIC] + [graph.X(f) for f in frames] + ([int(td_key)] if use_td else [])
     kinds = [1, "pose3", "pose3"] + ["pose3"] * k + ([1] if use_td else [])
 
@@ -111,4 +88,36 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
                                         sigma, robust, W)
         return r, J
 
-    return custom_factor(_noise(2 * n, float(sigma)), fkeys, kinds, fn)
+    return custom_factor(_noise(2 * len(uv), float(sigma)), fkeys, kinds, fn)
+
+
+def _layout(obs: list, v0: np.ndarray, off: np.ndarray, rig: StereoRig | None,
+            rvel: np.ndarray | None, vmax: float) -> tuple:
+    """The residual rows of a track's observations ``obs`` (anchor first): the cam0 ones
+    of the non-anchor keyframes, then the cam1 ones of every keyframe with a match (none
+    without ``rig``). Returns ``uv``, ``vel`` (n, 2), ``target`` (n,) body index,
+    ``right`` (n,) cam1 flags, ``offset`` (n,) and the rig's ``C`` (4, 4), ``Ad(C^-1)``
+    (6, 6) (identities without cam1 rows). ``v0`` (n0, 2) / ``off`` (n0,): the cam0 td
+    velocities and row offsets; ``rvel``: predicted cam1 velocities (None: measured)."""
+    n0 = len(obs)
+    st_i = [i for i, o in enumerate(obs) if o.right_uv is not None] if rig is not None else []
+    n1 = len(st_i)
+    n = n0 - 1 + n1
+    if n == 0:
+        raise ValueError("landmark track has no observation outside its anchor frame")
+    uv, vel, offset = np.empty((n, 2)), np.empty((n, 2)), np.empty(n)
+    target, right = np.empty(n, np.int64), np.zeros(n, np.bool_)
+    if n0 > 1:
+        uv[:n0 - 1] = [o.uv for o in obs[1:]]
+    vel[:n0 - 1] = v0[1:]
+    target[:n0 - 1] = np.arange(1, n0)
+    offset[:n0 - 1] = off[1:]
+    if not n1:
+        return uv, vel, target, right, offset, _EYE4, _EYE6
+    uv[n0 - 1:] = [obs[i].right_uv for i in st_i]
+    rv = np.array([obs[i].right_velocity for i in st_i]) if rvel is None else np.asarray(rvel)[st_i]
+    vel[n0 - 1:] = _capped(rv, vmax)
+    target[n0 - 1:] = st_i
+    right[n0 - 1:] = True
+    offset[n0 - 1:] = off[st_i]
+    return uv, vel, target, right, offset, rig.C, rig.ad_inv
