@@ -7,7 +7,8 @@ cam1 observations of every keyframe that has one, evaluated by
 ``factors.track_kernel`` (cam1 as cam0 of the virtual body ``T_w_b C``). Those builders
 went through ``make_track`` / ``make_stereo_track``, ``_cam0_shifts`` and the
 anchor-Jacobian helpers, ~40 small numpy and Python calls per landmark at every keyframe
-(~17 % of the backend's time on real MH_01 stereo); here the arrays are gathered once.
+(~17 % of the backend's time on real MH_01 stereo); here the arrays are gathered once
+(the td velocity caps and row offsets are still ``graph._cam0_shifts`` / ``_td_velocity``).
 The numbers are those of the two builders (same kernel, same inputs;
 tests/test_factor_speedups.py compares the linearizations).
 """
@@ -37,13 +38,6 @@ def _noise(m: int, sigma: float) -> gtsam.noiseModel.Base:
     return _NOISE[key]
 
 
-def _capped(vel: np.ndarray, vmax: float) -> np.ndarray:
-    """A copy of ``vel`` (n, 2) with rows faster than ``vmax`` zeroed (no td term)."""
-    vel = np.array(vel, float).reshape(-1, 2)
-    vel[~(np.sqrt(vel[:, 0] * vel[:, 0] + vel[:, 1] * vel[:, 1]) <= vmax)] = 0.0
-    return vel
-
-
 def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, cfg: BackendConfig,
                        sigma: float, line_time_s: float, vel: np.ndarray | None = None,
                        rvel: np.ndarray | None = None,
@@ -54,16 +48,13 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
     (normalized units) the observation noise; ``vel`` / ``rvel`` (n, 2): cam0 /
     cam1 td velocities of the observations in ``frames`` (default: the measured ones;
     ``rvel`` rows without a cam1 match are ignored); ``at``: the estimate for the
-    anchor-noise whitening (none without it). Records ``track.td_shift`` (cam0 velocity,
-    row offset per frame) as ``graph._cam0_shifts`` does.
+    anchor-noise whitening (none without it). The cam0 td velocities, row offsets and
+    ``track.td_shift`` come from ``graph._cam0_shifts``, as in the two builders.
     """
     robust, td_key = graph._vision_options(cfg)
     vc = cfg.vision
     obs = [track.obs[f] for f in frames]
-    rows = np.array([o.row for o in obs], float)
-    off = np.where(np.isfinite(rows), rows * line_time_s, 0.0)
-    v0 = _capped(np.array([o.velocity for o in obs]) if vel is None else vel, vc.td_velocity_max)
-    track.td_shift = {f: (v0[i], float(off[i])) for i, f in enumerate(frames)}
+    v0, off = graph._cam0_shifts(track, frames, obs, vel, vc.td_velocity_max, line_time_s)
     uv, vel_all, target, right, offset, C, ad_inv = _layout(obs, v0, off, rig, rvel, vc.td_velocity_max)
     a_uv, a_vel, a_off = np.array(obs[0].uv, float), v0[0].copy(), float(off[0])
     basis = tangent_basis(uv)
@@ -116,7 +107,7 @@ def _layout(obs: list, v0: np.ndarray, off: np.ndarray, rig: StereoRig | None,
         return uv, vel, target, right, offset, _EYE4, _EYE6
     uv[n0 - 1:] = [obs[i].right_uv for i in st_i]
     rv = np.array([obs[i].right_velocity for i in st_i]) if rvel is None else np.asarray(rvel)[st_i]
-    vel[n0 - 1:] = _capped(rv, vmax)
+    vel[n0 - 1:] = graph._td_velocity(rv, vmax)
     target[n0 - 1:] = st_i
     right[n0 - 1:] = True
     offset[n0 - 1:] = off[st_i]
