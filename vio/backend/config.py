@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from vio.backend.health import BridgeConfig, HealthConfig
+from vio.backend.scale_refine import RefineConfig
 from vio.imu import ImuNoiseConfig
 
 
@@ -219,3 +220,4 @@ class BackendConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
