@@ -204,6 +204,13 @@ class Pipeline:
         ic = self.cfg.backend.init
         if self._t_first is None:
             self._t_first = pkt.t_ns
+        if pkt.imu_gaps and self._init_buf:
+            # no alignment may preintegrate across the gap: the window starts again here
+            # (this packet's IMU, which spans the gap, is not used as the first of a window)
+            log.warning("t=%d ns: IMU gap before initialization: the initialization window "
+                        "restarts after it (%d buffered frames dropped)", pkt.t_ns, len(self._init_buf))
+            self._init_buf = []
+            self._next_try = None
         self._init_buf.append(pkt)
         if self.est.T_c0_c1 is not None and ic.stereo.enabled:
             outs = self._stereo_initialize(pkt, t0)

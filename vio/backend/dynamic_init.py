@@ -49,7 +49,7 @@ import numpy as np
 from factors.landmark import landmark_factor, make_track
 from factors.robust import RobustKernel
 from vio.backend.config import BackendConfig, InitConfig
-from vio.backend.gyro_init import gyro_bias, window_rotations
+from vio.backend.gyro_init import robust_gyro_bias, window_rotations
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
@@ -228,8 +228,9 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     fx = cam.intrinsics[0]
     prob = AlignProblem(obs, pims, cam, gravity, ic)
     rots = window_rotations(win.features, cam.T_b_c, fx)
-    if len(rots) >= ic.dynamic.min_rotation_pairs:
-        prob.bg0, prob.bg_sigma = gyro_bias(pims, rots), ic.dynamic.visual_gyro_bias_sigma
+    bg, agree = robust_gyro_bias(pims, rots, 3.0 * ic.dynamic.gyro_bias_sigma)
+    if len(agree) >= ic.dynamic.min_rotation_pairs:
+        prob.bg0, prob.bg_sigma = bg, ic.dynamic.visual_gyro_bias_sigma
     vi = vi_align(prob, ic, cfg.vision.outlier_px / fx, cfg.vision.pixel_sigma / fx)
     gerr = abs(np.linalg.norm(vi.g0) - g_norm) / g_norm
     reason, diag = _vi_checks(prob, vi, ic, gerr)
@@ -248,10 +249,16 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     diag.update(v0_disagreement=dv, gravity_disagreement_deg=dg)
     if not mean_err < ic.dynamic.max_mean_error:
         return _reject(f"batch refinement left a mean factor error of {mean_err:.1f}", **diag)
-    if not (dv <= ic.dynamic.max_v0_disagreement and dg <= ic.dynamic.max_gravity_disagreement_deg):
+    w = ic.dynamic.disagreement_widen
+    if not (dv <= w * ic.dynamic.max_v0_disagreement and dg <= w * ic.dynamic.max_gravity_disagreement_deg):
         return _reject(f"batch and alignment disagree ({dv:.3f} m/s, {dg:.2f} deg)", **diag)
+    # a moderate disagreement (the accelerometer bias and the tilt not yet separable):
+    # start anyway, with the disagreement as the roll-pitch / velocity prior sigmas
+    rp = max(ic.prior_rp_sigma, float(np.radians(dg)))
+    vel = max(ic.prior_vel_sigma, dv)
     state = InitialState(win.t_ns[0], est.atPose3(X(0)), est.atVector(V(0)),
-                         est.atConstantBias(B(0)), "dynamic")
+                         est.atConstantBias(B(0)), "dynamic",
+                         rp if rp > ic.prior_rp_sigma else None, vel if vel > ic.prior_vel_sigma else None)
     log.info("dynamic initialization: |g| error %.1f%%, v0 %s (sigma %.3f m/s), gyro bias %s",
              100 * gerr, np.round(state.v_w, 3), diag["v0_sigma"],
              np.round(state.bias.gyroscope(), 4))

@@ -24,6 +24,7 @@ from vio.backend import graph
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
+from vio.backend.regauge import ScaleRefiner
 from vio.backend.tracks import LandmarkManager
 from vio.imu import KeyframeRates, bridge_params, combined_params, integrate, integrate_still
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
@@ -118,6 +119,7 @@ class Estimator:
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
+        self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
 
     # ------------------------------------------------------------------ setup
     def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
@@ -150,6 +152,7 @@ class Estimator:
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)
+        self.refiner.reset()
         self.k = k
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
@@ -211,13 +214,15 @@ class Estimator:
         feature velocities (see ``vio.imu.KeyframeRates``);
         ``frame``: the pipeline's packet, passed to ``sources``."""
         k0, k1 = self.k, self.k + 1
+        div0 = self.divergences
         pred = self.predict()
         _, _, b0 = self.latest()
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
         f_imu = graph.imu_factor(k0, k1, self.pim)
         g.add(f_imu)
-        if self._bridge_t is not None:
+        bridged = self._bridge_t is not None
+        if bridged:
             self.bridged += 1
             log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
                      t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
@@ -253,6 +258,8 @@ class Estimator:
         n_removed = 0 if recovered else self._remove_outliers()
         if not recovered and self.k == k1:
             self._check_health(t_ns, n_removed, f_imu)
+        if not recovered and self.k == k1 and self.divergences == div0:
+            self.refiner.keyframe(self, k0, k1, t_ns, self.pim, bridged)
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)

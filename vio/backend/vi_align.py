@@ -242,9 +242,12 @@ def vi_align(prob: AlignProblem, ic: InitConfig, outlier: float, sigma: float) -
     """Robust alignment at the gyro bias ``prob.bg0`` (the visual-rotation estimate of
     ``gyro_init``, else zero) from several starts (zero velocity with the
     IMU's gravity guess, and :meth:`AlignProblem.alternate` from 1 m and 3 m; the lowest
-    cost wins), then twice with the gyro bias free, each time keeping only the
-    observations whose error is below ``outlier`` (normalized). ``sigma``: observation
-    noise (normalized) for the covariance.
+    cost wins), then with the gyro bias free, each time keeping only the observations
+    whose error is below ``outlier`` (normalized), until that inlier set is the
+    solution's own (two to four rounds: after only two, the set of the previous solution
+    was reported, and a good alignment of generated MH_04 tracks counted 74% inliers
+    where its own residuals had 92%). ``sigma``: observation noise (normalized) for the
+    covariance.
 
     ``|g0|`` stays free: forcing it to ``g`` here would push the accelerometer bias's
     component along gravity (0.05 m/s^2 moves a keyframe 6 cm in 1.5 s) into ``v0``;
@@ -257,10 +260,14 @@ def vi_align(prob: AlignProblem, ic: InitConfig, outlier: float, sigma: float) -
         if best is None or cost < best[1]:
             best = (x, cost)
     x = np.r_[best[0], prob.bg0]
-    for _ in range(2):
+    for rnd in range(4):   # until the inlier set is that of the solution (at most 4 rounds)
         prob.mask[:] = True
         _, _, r = prob.residuals(x, full=True)
-        prob.mask = np.linalg.norm(r, axis=1) < outlier
+        mask = np.linalg.norm(r, axis=1) < outlier
+        prob.mask = mask
+        if rnd > 1 and np.array_equal(mask, prev):
+            break
+        prev = mask.copy()
         x, cost, H = _robust_lm(prob.residuals, x, k, steps)
     _, rho, r = prob.residuals(x, full=True)
     cov = sigma ** 2 * np.linalg.pinv(H)

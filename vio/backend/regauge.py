@@ -1,0 +1,196 @@
+"""Keyframe history for the scale and gravity refinement (:mod:`vio.backend.scale_refine`)
+and the application of its similarity correction to the estimator's state.
+
+:class:`ScaleRefiner` keeps, since the (re)start, every keyframe's latest smoothed pose
+and velocity and the preintegrated IMU of each interval (bridged IMU gaps excluded); at
+the scheduled times it solves for scale and gravity and, when the solution passes the
+determinacy test, :func:`apply_similarity` moves the whole state into the corrected
+world: camera centres scaled by ``s`` about the history's first camera and rotated by
+``R_corr`` (gravity back along -z), attitudes rotated, velocities ``s R_corr v``, inverse
+depths ``rho / s``; biases, extrinsic and td unchanged. The gtsam ``Values`` is the only
+state copy, so the smoother is rebuilt from its own factors at the transformed values:
+projection factors are invariant under a similarity, IMU factors are not (that is the
+point), and each marginal factor (``LinearContainerFactor``) is re-linearized at the
+current estimate and re-anchored at the transformed one (its information, expressed in
+body-frame tangents, moves with the state; the ``s``-scaling of its translation columns,
+a few percent, is neglected). Factor indices change, so the landmark manager's records
+are remapped.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import gtsam
+import numpy as np
+
+from vio.backend import graph
+from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
+
+if TYPE_CHECKING:
+    from vio.backend.estimator import Estimator
+
+log = logging.getLogger(__name__)
+X, V = graph.X, graph.V
+
+
+class Similarity:
+    """``x -> pivot + s R (x - pivot)`` on camera centres, applied to body states with the
+    lever arm ``t_bc`` (m, body frame)."""
+
+    def __init__(self, s: float, R: gtsam.Rot3, pivot: np.ndarray, t_bc: np.ndarray) -> None:
+        self.s, self.R, self.Rm = float(s), R, R.matrix()
+        self.pivot, self.t_bc = np.asarray(pivot, float), np.asarray(t_bc, float)
+
+    def pose(self, T: gtsam.Pose3) -> gtsam.Pose3:
+        Rb = T.rotation().matrix()
+        c = T.translation() + Rb @ self.t_bc
+        c2 = self.pivot + self.s * self.Rm @ (c - self.pivot)
+        R2 = self.Rm @ Rb
+        return gtsam.Pose3(gtsam.Rot3(R2), c2 - R2 @ self.t_bc)
+
+    def velocity(self, v: np.ndarray) -> np.ndarray:
+        return self.s * self.Rm @ np.asarray(v, float)
+
+    def values(self, vals: gtsam.Values, keys=None) -> gtsam.Values:
+        """The transformed copy of ``vals`` (only ``keys`` if given)."""
+        out = gtsam.Values()
+        for key in (vals.keys() if keys is None else keys):
+            ch = chr(gtsam.Symbol(key).chr())
+            if ch == "x":
+                out.insert(key, self.pose(vals.atPose3(key)))
+            elif ch == "v":
+                out.insert(key, self.velocity(vals.atVector(key)))
+            elif ch == "l":
+                out.insert(key, vals.atVector(key) / self.s)
+            elif ch == "b":
+                out.insert(key, vals.atConstantBias(key))
+            elif ch == "e":
+                out.insert(key, vals.atPose3(key))
+            elif ch == "d":
+                out.insert(key, vals.atVector(key))
+            else:
+                raise ValueError(f"cannot transform key {gtsam.DefaultKeyFormatter(key)}")
+        return out
+
+
+def _factor(f, sim: Similarity, lin: gtsam.Values):
+    """``f`` in the transformed world (module docstring); ``lin``: the smoother's
+    linearization point, relative to which iSAM2's marginal factors (linear, without a
+    linearization point of their own) are expressed."""
+    if isinstance(f, gtsam.LinearContainerFactor):
+        return gtsam.LinearContainerFactor(f.factor(), sim.values(lin, f.keys()))
+    if isinstance(f, gtsam.PriorFactorPose3) and chr(gtsam.Symbol(f.keys()[0]).chr()) == "x":
+        return gtsam.PriorFactorPose3(f.keys()[0], sim.pose(f.prior()), f.noiseModel())
+    if isinstance(f, gtsam.PriorFactorVector) and chr(gtsam.Symbol(f.keys()[0]).chr()) == "v":
+        return gtsam.PriorFactorVector(f.keys()[0], sim.velocity(f.prior()), f.noiseModel())
+    return f
+
+
+def apply_similarity(est: "Estimator", sim: Similarity) -> None:
+    """Rebuild ``est``'s smoother with its state transformed by ``sim`` (module
+    docstring); raises RuntimeError if the solver refuses (the caller keeps the old one)."""
+    old = est.smoother
+    vals, lin = est.values, old.getLinearizationPoint()
+    fg = old.getFactors()
+    stamps = {int(k): float(t) for k, t in old.timestamps().items()}
+    g, order = gtsam.NonlinearFactorGraph(), []
+    for j in range(fg.size()):
+        f = fg.at(j)
+        if f is None:
+            continue
+        g.add(_factor(f, sim, lin))
+        order.append(j)
+    new = est._new_smoother()
+    new.update(g, sim.values(vals), stamps)
+    idx = list(new.getISAM2Result().getNewFactorsIndices())
+    remap = dict(zip(order, (int(i) for i in idx)))
+    for tr in est.lm.tracks.values():
+        tr.factor_indices = [remap[i] for i in tr.factor_indices if i in remap]
+    est.smoother = new
+    est.values = new.calculateEstimate()
+
+
+class ScaleRefiner:
+    """The history and schedule of the refinement for one ``Estimator`` (module
+    docstring). ``gravity`` (3,): the IMU params' n_gravity."""
+
+    def __init__(self, cfg: RefineConfig, gravity: np.ndarray) -> None:
+        self.cfg = cfg
+        self.gravity = np.asarray(gravity, float)
+        self.applied = 0                  # corrections applied
+        self.log: list[tuple[float, Refinement]] = []   # (s after start, outcome) per attempt
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the history (a (re)start: the world frame may have been re-anchored)."""
+        self.t: dict[int, int] = {}
+        self.T: dict[int, gtsam.Pose3] = {}
+        self.v: dict[int, np.ndarray] = {}
+        self.pims: list[tuple[int, int, object]] = []
+        self.t0: int | None = None
+        self.next_s = self.cfg.first_s
+
+    def keyframe(self, est: "Estimator", k0: int, k1: int, t_ns: int, pim, bridged: bool) -> None:
+        """Record keyframe ``k1`` (the interval from ``k0`` with ``pim``, skipped when
+        ``bridged``), refresh the window's estimates, refine when due."""
+        if not self.cfg.enabled or est.C_stereo is not None or est.sources:
+            return
+        if self.t0 is None:
+            self.t0 = est.kf_t.get(k0, t_ns)
+        if k0 in est.kf_t and k0 not in self.t:
+            self.t[k0] = est.kf_t[k0]
+        self.t[k1] = t_ns
+        if not bridged and k0 in self.t:
+            self.pims.append((k0, k1, pim))
+        for k in est.kf_t:
+            if est.values.exists(X(k)):
+                self.T[k], self.v[k] = est.values.atPose3(X(k)), est.values.atVector(V(k))
+        self._trim(t_ns)
+        age = (t_ns - self.t0) * 1e-9
+        if age >= self.next_s and age <= self.cfg.until_s:
+            self._attempt(est, age)
+
+    def _trim(self, t_ns: int) -> None:
+        keep = t_ns - int(self.cfg.history_s * 1e9)
+        for k in [k for k, t in self.t.items() if t < keep]:
+            self.t.pop(k)
+            self.T.pop(k, None)
+            self.v.pop(k, None)
+        self.pims = [p for p in self.pims if p[0] in self.t]
+
+    def _attempt(self, est: "Estimator", age: float) -> None:
+        ks = sorted(k for k in self.t if k in self.T)
+        row = {k: n for n, k in enumerate(ks)}
+        ivs = [interval(row[a], row[b], pim, self.gravity) for a, b, pim in self.pims
+               if a in row and b in row]
+        res = solve([self.T[k] for k in ks], np.array([self.v[k] for k in ks]), ivs,
+                    est.values.atPose3(graph.EXTRINSIC), self.gravity, self.cfg)
+        self.log.append((age, res))
+        if not res.ok:
+            log.info("scale refinement %.1f s after the start refused: %s", age, res.reason)
+            self.next_s = age + self.cfg.retry_s
+            return
+        self.next_s = self.cfg.first_s + self.cfg.every_s * (int((age - self.cfg.first_s) / self.cfg.every_s) + 1)
+        small = (abs(res.scale - 1.0) < self.cfg.min_scale_change
+                 and res.gravity_change_deg < self.cfg.min_gravity_change_deg)
+        log.info("scale refinement %.1f s after the start over %d intervals: scale %.4f "
+                 "(sigma %.2f%%), gravity %.2f deg (sigma %.2f deg), chi2/dof %.2f%s", age,
+                 res.n_intervals, res.scale, 100 * res.scale_sigma, res.gravity_change_deg,
+                 res.gravity_sigma_deg, res.chi2_dof, " (too small to apply)" if small else "")
+        if small:
+            return
+        T0 = self.T[ks[0]]
+        t_bc = est.values.atPose3(graph.EXTRINSIC).translation()
+        sim = Similarity(res.scale, res.R_corr, T0.translation() + T0.rotation().matrix() @ t_bc, t_bc)
+        try:
+            apply_similarity(est, sim)
+        except RuntimeError as exc:
+            log.error("scale refinement not applied: the rebuilt smoother failed (%s)",
+                      str(exc).splitlines()[0][:120])
+            return
+        self.applied += 1
+        est.health.reset(est.kf_t[est.k], est.latest()[2])   # its fallback states are in the old world
+        for k in ks:
+            self.T[k], self.v[k] = sim.pose(self.T[k]), sim.velocity(self.v[k])
