@@ -64,10 +64,10 @@ def test_point_residual_rows_and_weights():
 
 
 def test_points_config_is_strict():
-    cfg = from_dict(DirectConfig, {"points": {"max_active": 80, "affine_sigma": [0.5, 10.0]}})
-    assert cfg.points.max_active == 80 and cfg.points.affine_sigma == (0.5, 10.0)
+    cfg = from_dict(DirectConfig, {"points": {"max_points": 80, "affine_sigma": [0.5, 10.0]}})
+    assert cfg.points.max_points == 80 and cfg.points.affine_sigma == (0.5, 10.0)
     with pytest.raises(ConfigError):
-        from_dict(DirectConfig, {"points": {"max_activ": 80}})
+        from_dict(DirectConfig, {"points": {"max_point": 80}})
     with pytest.raises((ConfigError, ValueError)):
         from_dict(DirectConfig, {"points": {"max_targets": 0}})
 
@@ -101,7 +101,7 @@ def _small(hybrid: bool) -> PipelineConfig:
     cfg = default_config("hybrid" if hybrid else "direct")
     d = cfg.direct
     d = dataclasses.replace(d, select=dataclasses.replace(d.select, n_points=200, block=16),
-                            points=dataclasses.replace(d.points, max_active=80 if hybrid else 100))
+                            points=dataclasses.replace(d.points, max_points=80 if hybrid else 100))
     return dataclasses.replace(cfg, direct=d)
 
 

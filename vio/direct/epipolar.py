@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from numba import njit
 
 from factors.image_ops import BilinearImage, ImageSampler
 from factors.photometric import PATTERN, Pinhole, make_host_patch
@@ -92,31 +93,74 @@ def _patch_cost(target: ImageSampler, centers: np.ndarray, offs: np.ndarray, ref
     return (diff ** 2).sum(-1), valid.all(-1), diff, gx, gy
 
 
-def _discrete_search(target, x0, l, length, ok, offs, ref, cfg, chunk: int = 64):
+@njit(cache=True, nogil=True)
+def _search_kernel(stack, x0, l, length, ok, offs, ref, step, S, zero_mean):
+    """Per point: best sample index along the segment (interior minimum only), its SSD
+    and the second best SSD beyond +-2 px (numba; see ``_discrete_search``)."""
+    n, P = ref.shape
+    h, w = stack.shape[0], stack.shape[1]
+    k_best = np.zeros(n, np.int64)
+    best = np.full(n, np.inf)
+    second = np.full(n, np.inf)
+    e = np.empty(S)
+    d = np.empty(P)
+    for i in range(n):
+        if not ok[i]:
+            continue
+        for j in range(S):
+            e[j] = np.inf
+            sj = j * step
+            if sj > length[i] + 1e-9:
+                continue
+            cu = x0[i, 0] + sj * l[i, 0]
+            cv = x0[i, 1] + sj * l[i, 1]
+            good = True
+            mean = 0.0
+            for k in range(P):
+                u = cu + offs[k, 0]
+                v = cv + offs[k, 1]
+                if not (u >= 1.0 and u < w - 2.0 and v >= 1.0 and v < h - 2.0):
+                    good = False
+                    break
+                u0, v0 = int(u), int(v)
+                fx, fy = u - u0, v - v0
+                top = stack[v0, u0, 0] + fx * (stack[v0, u0 + 1, 0] - stack[v0, u0, 0])
+                bot = stack[v0 + 1, u0, 0] + fx * (stack[v0 + 1, u0 + 1, 0] - stack[v0 + 1, u0, 0])
+                d[k] = top + fy * (bot - top) - ref[i, k]
+                mean += d[k]
+            if not good:
+                continue
+            mean = mean / P if zero_mean else 0.0
+            ssd = 0.0
+            for k in range(P):
+                ssd += (d[k] - mean) ** 2
+            e[j] = ssd
+        kb = 0
+        for j in range(S):
+            if e[j] < e[kb]:
+                kb = j
+        if kb == 0 or kb == S - 1 or not np.isfinite(e[kb - 1]) or not np.isfinite(e[kb + 1]):
+            continue      # the true match may lie outside the searched segment
+        k_best[i] = kb
+        best[i] = e[kb]
+        for j in range(S):
+            if abs(j - kb) * step > 2.0 and e[j] < second[i]:
+                second[i] = e[j]
+    return k_best, best, second
+
+
+def _discrete_search(target, x0, l, length, ok, offs, ref, cfg):
     """Best sample position s (N,), its SSD and quality (second best beyond +-2 px / best)."""
-    n = len(x0)
     S = int(min(cfg.max_steps, np.ceil(length[ok].max() / cfg.step_px) + 1)) if ok.any() else 1
-    s = np.arange(S) * cfg.step_px
-    s_best, best, quality = np.zeros(n), np.full(n, np.inf), np.zeros(n)
-    for a in range(0, n, chunk):
-        sl = slice(a, min(n, a + chunk))
-        centers = x0[sl, None, :] + s[None, :, None] * l[sl, None, :]
-        e, valid, _, _, _ = _patch_cost(target, centers, offs, ref[sl, None, :], cfg.zero_mean)
-        valid &= (s[None, :] <= length[sl, None] + 1e-9) & ok[sl, None]
-        e = np.where(valid, e, np.inf)
-        k = np.argmin(e, axis=1)
-        b = e[np.arange(len(k)), k]
-        # an interior minimum only: a best sample at a clipped end (image border or the
-        # idepth range) means the true match may lie outside the searched segment
-        rows = np.arange(len(k))
-        inner = (k > 0) & (k < S - 1)
-        inner &= np.isfinite(e[rows, np.maximum(k - 1, 0)]) & np.isfinite(e[rows, np.minimum(k + 1, S - 1)])
-        b = np.where(inner, b, np.inf)
-        far = np.abs(s[None, :] - s[k][:, None]) > 2.0
-        second = np.where(far, e, np.inf).min(axis=1)
-        s_best[sl], best[sl] = s[k], b
-        quality[sl] = np.where(np.isfinite(b), second / np.where(np.isfinite(b), np.maximum(b, 1e-9), 1.0), 0.0)
-    return s_best, best, quality
+    stack = getattr(target, "_stack", None)
+    if stack is None:
+        raise TypeError("epipolar_search: the target image must be an array or a BilinearImage")
+    k, best, second = _search_kernel(stack, np.ascontiguousarray(x0), np.ascontiguousarray(l), length,
+                                     ok, np.ascontiguousarray(offs), np.ascontiguousarray(ref),
+                                     float(cfg.step_px), S, bool(cfg.zero_mean))
+    fin = np.isfinite(best)
+    quality = np.where(fin, second / np.where(fin, np.maximum(best, 1e-9), 1.0), 0.0)
+    return k * cfg.step_px, best, quality
 
 
 def _refine(target, x0, l, s, offs, ref, cfg):

@@ -15,8 +15,9 @@ the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
   the dynamic (visual-inertial) initialization aligns feature tracks, and the
   keyframe decisions of its buffered window use them. After that KLT is not run; the
   keyframe / stillness decisions of ``Pipeline`` (mean flow since the last keyframe,
-  number of common features) see ``FeatureFrame``s made of the points of the last two
-  keyframes (epipolar depths) projected into the frame with the IMU-propagated pose
+  number of common features) see ``FeatureFrame``s made of the live points of every
+  host in the window (their refined inverse depths, ``PhotometricSource.live_points``)
+  projected into the frame with the IMU-propagated pose
   since the newest keyframe (ids = keyframe * 1e6 + point index; points that leave the
   image drop out, so a view change also triggers a keyframe). These frames carry no
   measurement: nothing in them reaches the graph.
@@ -100,23 +101,16 @@ class DirectStage:
         pipeline's flow (stillness, parallax) compares the same points across frames."""
         src, est = self.source, self.pipe.est
         T_c_w = self._predict(pkt).compose(src.rig.T_b_c).inverse()
-        by_host: dict[int, list] = {}
-        for p in src.points.values():
-            if est.values.exists(p.key):
-                by_host.setdefault(p.host, []).append(p)
         ids, uvs = [], []
         w, h = self.cam0.resolution
-        for f, pts in by_host.items():
-            if not est.values.exists(X(f)):
-                continue
+        for f, uv_h, rho, idx in src.live_points():
             T = T_c_w.compose(est.values.atPose3(X(f)).compose(src.rig.T_b_c))
-            rho = np.array([est.values.atVector(p.key)[0] for p in pts])
-            q = src.rig.K0.unproject(np.array([p.uv for p in pts])) / np.maximum(rho, 1e-6)[:, None]
+            q = src.rig.K0.unproject(uv_h) / np.maximum(rho, 1e-6)[:, None]
             q = q @ T.rotation().matrix().T + T.translation()
             z = q[:, 2]
             px = src.rig.K0.project(np.where(z[:, None] > 0.05, q, 1.0))
             ok = (z > 0.05) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-            ids.append(np.array([p.pid for p in pts])[ok])
+            ids.append((f * 1_000_000 + idx)[ok])
             uvs.append(q[ok, :2] / z[ok, None])
         ids_a = np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)
         uv = np.concatenate(uvs) if uvs else np.zeros((0, 2))

@@ -48,7 +48,8 @@ class TrackingReference:
 
 @dataclass(frozen=True)
 class LevelStats:
-    """One pyramid level of a TrackFrame call; ``rmse`` in intensity units over valid residuals."""
+    """One pyramid level of a TrackFrame call; ``rmse`` (intensity units) the median over
+    the points of their pattern RMSE."""
 
     level: int
     iterations: int
@@ -63,7 +64,7 @@ class LevelStats:
 @dataclass(frozen=True)
 class TrackResult:
     """``T_kf_new`` pose of the new camera in the keyframe camera; ``a``, ``b`` the new
-    frame's affine brightness; ``rmse`` level-0 intensity RMSE; ``iterations`` summed
+    frame's affine brightness; ``rmse`` level-0 median point RMSE (intensity units); ``iterations`` summed
     over levels; ``ok`` enough points stayed in view and the RMSE is plausible."""
 
     T_kf_new: gtsam.Pose3
@@ -107,10 +108,14 @@ def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg:
         return r, J.reshape(r.shape[0], 8)
 
     def rmse(x):
+        """Median over the points of their pattern RMSE (robust to the outlier points a
+        real scene always has: occlusions, wrong stereo depths, specularities) and the
+        fraction of valid residuals."""
         T, ab = x
         ev = temporal_eval(_IDENTITY, T, ref.idepth, ref.ab, ab, patch, target, K, _IDENTITY)
-        n = max(int(ev.valid.sum()), 1)
-        return float(np.sqrt((ev.r[ev.valid] ** 2).sum() / n)), float(ev.valid.mean())
+        n = ev.valid.sum(1)
+        per = np.sqrt((np.where(ev.valid, ev.r, 0.0) ** 2).sum(1) / np.maximum(n, 1))[n > 0]
+        return (float(np.median(per)) if per.size else float("inf")), float(ev.valid.mean())
 
     return fun, rmse
 
