@@ -96,6 +96,11 @@ class TrackConfig:
     ``max_rmse`` (intensity units) for ``ok``; ``use_idepth_var`` includes the seed's
     (dr/drho)^2 V term. ``lm_*`` set the per-level ``LMConfig`` (Marquardt diagonal
     damping by default: pose and the intensity offset b have very different scales).
+    ``imu_prior``: once the IMU is initialized, the IMU-predicted relative pose is a
+    Gaussian prior of the alignment (``vio.direct.trackframe.MotionPrior``) with sigmas
+    from the preintegration covariance, at least ``prior_rot_sigma`` (rad) and, for the
+    translation, ``prior_trans_sigma`` (m) plus ``prior_vel_sigma`` (m/s, the previous
+    keyframe's velocity uncertainty) times the interval.
     """
 
     enabled: bool = True
@@ -113,8 +118,14 @@ class TrackConfig:
     lm_eps4: float = 1e-5
     lm_max_rejects: int = 4
     lm_damping: Literal["identity", "diagonal"] = "diagonal"
+    imu_prior: bool = True
+    prior_rot_sigma: float = 0.0005
+    prior_trans_sigma: float = 0.001
+    prior_vel_sigma: float = 0.02
 
     def __post_init__(self) -> None:
+        if min(self.prior_rot_sigma, self.prior_trans_sigma) <= 0 or self.prior_vel_sigma < 0:
+            raise ValueError("TrackConfig: prior sigmas must be positive")
         if self.levels < 1 or len(self.iters) != self.levels:
             raise ValueError(f"TrackConfig: iters needs one entry per level ({self.levels}), "
                              f"got {len(self.iters)}")

@@ -41,9 +41,10 @@ import numpy as np
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch, temporal_eval
 from factors.photometric_host import HostParams, HostPoints, StereoHost, host_factor
+from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
-from vio.direct.trackframe import track_frame
+from vio.direct.trackframe import MotionPrior, track_frame
 
 log = logging.getLogger(__name__)
 X = gtsam.symbol_shorthand.X
@@ -195,11 +196,15 @@ class PhotometricSource:
             return ab_p
         T_w_cp = vals.atPose3(X(prev.k)).compose(T_b_c)
         T_pred = v.atPose3(X(k))
+        T_init = T_w_cp.between(T_pred.compose(T_b_c))
         t0 = time.perf_counter()
-        res = track_frame(prev.reference(ab_p, self.cfg), kd.image,
-                          T_w_cp.between(T_pred.compose(T_b_c)), ab_p, self.cfg.track)
+        res = track_frame(prev.reference(ab_p, self.cfg), kd.image, T_init, ab_p, self.cfg.track,
+                          self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9))
         ms = (time.perf_counter() - t0) * 1e3
-        T_tr = T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse())
+        # re-orthonormalized: T_tr = T_w_cp (T_w_cp^-1 T_pred T_b_c) ... composes the
+        # previous keyframe's rotation three times, so its rounding error tripled at every
+        # keyframe (1e-16 -> 0.5% shear by keyframe 28 of real MH_01, then divergence)
+        T_tr = pose_from_matrix(T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse()).matrix())
         d = T_pred.between(T_tr)
         dist, ang = float(np.linalg.norm(d.translation())), float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
@@ -209,6 +214,19 @@ class PhotometricSource:
         if not res.ok:
             log.warning("TrackFrame failed at keyframe %d: rmse %.1f (IMU prediction kept)", k, res.rmse)
         return np.array([res.a, res.b]) if res.ok else ab_p
+
+    def _motion_prior(self, T_init: gtsam.Pose3, dt: float) -> MotionPrior | None:
+        """The IMU prediction ``T_init`` (camera of the new keyframe in the previous one's,
+        ``dt`` s apart) as TrackFrame's prior: sigmas from the preintegration covariance
+        (rotation, position blocks) and the configured floors (``TrackConfig``)."""
+        tc, pim = self.cfg.track, self.est.pim
+        if not tc.imu_prior or pim is None or pim.deltaTij() <= 0:
+            return None
+        cov = np.asarray(pim.preintMeasCov())
+        s_rot = max(tc.prior_rot_sigma, float(np.sqrt(np.trace(cov[:3, :3]) / 3.0)))
+        s_tr = float(np.hypot(tc.prior_trans_sigma, tc.prior_vel_sigma * dt))
+        s_tr = max(s_tr, float(np.sqrt(np.trace(cov[3:6, 3:6]) / 3.0)))
+        return MotionPrior(T_init, s_rot, s_tr)
 
     def _project(self, host: Host, T_w_bj: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray]:
         """Host centre pixels of the live points projected into a frame at ``T_w_bj``:
