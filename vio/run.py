@@ -72,10 +72,6 @@ MODE_DEFAULTS: dict[str, dict] = {
 # photometric points (direct, hybrid): relinearize at every update (see vio.direct.mode)
 _PHOTOMETRIC_SOLVER = {"relinearize_skip": 1, "relinearize_threshold": 0.005}
 MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
-# hybrid: the KLT landmarks and the IMU give the keyframe guess; TrackFrame's pose (a
-# photometric local minimum on repetitive close-range texture) made real MH_01 diverge
-# (160 frames: 2.9 m with it, 6.7 cm without)
-MODE_DEFAULTS["hybrid"]["direct"] = {"points": {"use_track_guess": False}}
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
