@@ -144,12 +144,19 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
     stereo = mode in STEREO_MODES
     it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
                  **screen)
-    if mode in ("direct", "hybrid"):
-        from vio.direct.mode import attach
-        return it, attach(pipe, data, cfg, hybrid=mode == "hybrid")
     from vio.tracking import ImageStage
     args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
-    if not cfg.frontend.worker_process or os.name == "nt":   # no select() on pipes there
+    worker = cfg.frontend.worker_process and os.name != "nt"   # no select() on pipes there
+    if mode in ("direct", "hybrid"):
+        from vio.direct.mode import attach
+        # hybrid tracks KLT on every frame: in the worker process, like stereo mode (direct
+        # needs KLT only until it is initialized, so it stays in this process)
+        klt_worker = worker and mode == "hybrid"
+        if klt_worker:
+            from vio.overlap import overlapped
+            it = overlapped(ImageStage, args, it)
+        return it, attach(pipe, data, cfg, hybrid=mode == "hybrid", klt=not klt_worker)
+    if not worker:
         return it, ImageStage(*args)
     from vio.overlap import overlapped
     return overlapped(ImageStage, args, it), None

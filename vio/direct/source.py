@@ -45,6 +45,7 @@ from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.trackframe import MotionPrior, track_frame
+from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
 X = gtsam.symbol_shorthand.X
@@ -119,8 +120,9 @@ class PhotometricSource:
 
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
-        """Build keyframe k's data from ``frame.images`` (left, right)."""
-        imgs = getattr(frame, "images", ())
+        """Build keyframe k's data from ``frame.images`` (left, right), read from
+        ``frame.image_files`` when the packet carries none."""
+        imgs = getattr(frame, "images", ()) or tuple(read_image(p) for p in getattr(frame, "image_files", ())[:2])
         if len(imgs) < 2:
             raise ValueError(f"direct mode: keyframe {k} packet has no stereo images")
         self.kfs[k] = build_keyframe(k, frame.t_ns, imgs[0], imgs[1], self.rig, self.cfg)
