@@ -23,12 +23,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import gtsam
 import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
-from factors.photometric import (HostPatch, Pinhole, PhotometricParams, make_host_patch,
-                                 sqrt_weights, temporal_eval)
+from factors.photometric import HostPatch, Pinhole, make_host_patch
+from factors.track_kernel import track_rows
 from vio.direct.config import TrackConfig
 from vio.direct.lm import levenberg_marquardt
 
@@ -123,30 +125,40 @@ def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg:
                    prior: MotionPrior | None = None):
     """Residual function x = (T_kf_new, ab) -> (whitened r, J (m, 8)) of one level, the
     ``prior`` rows last."""
-    params = PhotometricParams(sigma_I=cfg.sigma_I, grad_c=cfg.grad_c, huber_k=None)
     patch, K = ref.patches[lev], ref.K[lev]
-    var = ref.idepth_var if cfg.use_idepth_var else 0.0
+    N, P = patch.intensity.shape
+    var = ref.idepth_var if cfg.use_idepth_var else np.zeros(N)
+    args = (np.ascontiguousarray(patch.bearing), np.ascontiguousarray(patch.intensity),
+            np.ascontiguousarray(patch.grad_sq), np.ascontiguousarray(patch.valid),
+            np.ascontiguousarray(ref.idepth, float), np.ascontiguousarray(var, float))
+    Kv = np.array([K.fx, K.fy, K.cx, K.cy])
+    stack = target._stack
+    ab_i = np.asarray(ref.ab, float)
+    r_w, J = np.empty(N * P), np.empty((N * P, 8))
+    r_raw, valid = np.empty((N, P)), np.empty((N, P), bool)
+
+    def evaluate(x) -> None:
+        T, ab = x
+        Ti = T.inverse()       # keyframe camera -> new camera
+        s = math.exp(float(ab[0]) - ab_i[0])
+        track_rows(*args, Ti.rotation().matrix(), Ti.translation(), Kv, stack, s, ab_i[1], float(ab[1]),
+                   cfg.grad_c ** 2, 2.0 * cfg.sigma_I ** 2, cfg.oob_residual, r_w, J, r_raw, valid)
 
     def fun(x):
-        T, ab = x
-        ev = temporal_eval(_IDENTITY, T, ref.idepth, ref.ab, ab, patch, target, K, _IDENTITY)
-        sw = sqrt_weights(ev, patch, params, var)
-        r = np.where(ev.valid, sw * ev.r, cfg.oob_residual).reshape(-1)
-        J = (np.concatenate([ev.J["pose_j"], ev.J["ab_j"]], -1) * sw[..., None]).reshape(r.shape[0], 8)
+        evaluate(x)
         if prior is None:
-            return r, J
-        rp, Jp = prior.rows(T)
-        return np.concatenate([r, rp]), np.concatenate([J, Jp])
+            return r_w.copy(), J.copy()
+        rp, Jp = prior.rows(x[0])
+        return np.concatenate([r_w, rp]), np.concatenate([J, Jp])
 
     def rmse(x):
         """Median over the points of their pattern RMSE (robust to the outlier points a
         real scene always has: occlusions, wrong stereo depths, specularities) and the
         fraction of valid residuals."""
-        T, ab = x
-        ev = temporal_eval(_IDENTITY, T, ref.idepth, ref.ab, ab, patch, target, K, _IDENTITY)
-        n = ev.valid.sum(1)
-        per = np.sqrt((np.where(ev.valid, ev.r, 0.0) ** 2).sum(1) / np.maximum(n, 1))[n > 0]
-        return (float(np.median(per)) if per.size else float("inf")), float(ev.valid.mean())
+        evaluate(x)
+        n = valid.sum(1)
+        per = np.sqrt((r_raw ** 2).sum(1) / np.maximum(n, 1))[n > 0]
+        return (float(np.median(per)) if per.size else float("inf")), float(valid.mean())
 
     return fun, rmse
 
