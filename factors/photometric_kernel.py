@@ -37,20 +37,12 @@ import numpy as np
 
 try:
     from numba import njit as _numba_njit
-    from numba import prange
 
     def _njit(fn):  # noqa: D103
         return _numba_njit(cache=True, nogil=True, fastmath=False)(fn)
-
-    def _njit_parallel(fn):  # noqa: D103
-        return _numba_njit(cache=True, nogil=True, fastmath=False, parallel=True)(fn)
 except ImportError:  # pragma: no cover
-    prange = range
-
     def _njit(fn):  # noqa: D103
         return fn
-
-    _njit_parallel = _njit
 
 MIN_Z = 1e-6
 MAX_LOG_GAIN = 5.0
@@ -183,19 +175,20 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
     return rho
 
 
-@_njit_parallel
+@_njit
 def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
                 st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, outlier_rms, iters,
                 rho_min, rho_max):
-    """Pass 1 of :func:`host_system`, one point per iteration (``prange``: the points are
-    independent, ~3/4 of the kernel's warps): (refined rho (N,), pattern RMS (N, M) with
+    """Pass 1 of :func:`host_system`, one point at a time (~3/4 of the kernel's warps; a
+    numba ``prange`` over the points cost 4x more per call on the shared 2-core machine
+    of the measurements): (refined rho (N,), pattern RMS (N, M) with
     -1 for a pattern that left the image and inf for one not judged, stereo/depth ok (N,))."""
     N, P = Ii.shape
     M = R_ji.shape[0]
     rp = rho.copy()
     ms = np.full((N, M), np.inf)
     ok_p = alive.copy()
-    for p in prange(N):
+    for p in range(N):
         if not alive[p]:
             continue
         rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
@@ -246,7 +239,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     cost = 0.0
     red = 0.0
     used = 0
-    # pass 1 (over the points in parallel): refined depths, stereo check, pattern RMS of
+    # pass 1: refined depths, stereo check, pattern RMS of
     # every (point, target)
     rp, ms, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
                                ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo,

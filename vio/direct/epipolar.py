@@ -22,6 +22,7 @@ V = sigma_px^2 / |d x / d rho|^2 with d x / d rho = d pi / d q t (pixels per 1/m
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import gtsam
 import numpy as np
@@ -248,7 +249,8 @@ def undistort_pinhole(image: np.ndarray, K: np.ndarray, distortion: tuple[float,
     """Undistort a (H, W) image to the pinhole camera with the same ``K`` (float64 output).
 
     ``model``: ``"radial-tangential"`` (k1, k2, p1, p2), ``"equidistant"`` (k1..k4) or
-    ``"none"``. Pixels mapped from outside the source are 0.
+    ``"none"``. Pixels mapped from outside the source are 0. The remap tables are
+    computed once per camera and image size (``_undistort_maps``).
     """
     import cv2  # the pipeline layer may use cv2; factors/ may not
 
@@ -256,12 +258,19 @@ def undistort_pinhole(image: np.ndarray, K: np.ndarray, distortion: tuple[float,
     if model == "none" or not any(distortion):
         return img.astype(np.float64)
     h, w = img.shape[:2]
-    K = np.asarray(K, dtype=np.float64)
-    d = np.asarray(distortion, dtype=np.float64)
-    if model == "equidistant":
-        m1, m2 = cv2.fisheye.initUndistortRectifyMap(K, d, np.eye(3), K, (w, h), cv2.CV_32FC1)
-    elif model == "radial-tangential":
-        m1, m2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
-    else:
-        raise ValueError(f"undistort_pinhole: unknown distortion model {model!r}")
+    m1, m2 = _undistort_maps(tuple(np.asarray(K, float).ravel()), tuple(float(d) for d in distortion),
+                             model, w, h)
     return cv2.remap(img.astype(np.float32), m1, m2, cv2.INTER_LINEAR).astype(np.float64)
+
+
+@lru_cache(maxsize=8)
+def _undistort_maps(K: tuple, distortion: tuple, model: str, w: int, h: int):
+    """cv2 remap tables (float32) of :func:`undistort_pinhole`."""
+    import cv2
+
+    Km, d = np.array(K).reshape(3, 3), np.array(distortion)
+    if model == "equidistant":
+        return cv2.fisheye.initUndistortRectifyMap(Km, d, np.eye(3), Km, (w, h), cv2.CV_32FC1)
+    if model == "radial-tangential":
+        return cv2.initUndistortRectifyMap(Km, d, None, Km, (w, h), cv2.CV_32FC1)
+    raise ValueError(f"undistort_pinhole: unknown distortion model {model!r}")
