@@ -30,7 +30,7 @@ import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
 from factors.photometric import HostPatch, Pinhole, make_host_patch
-from factors.track_kernel import track_rows
+from factors.trackframe_kernel import track_rows
 from vio.direct.config import TrackConfig
 from vio.direct.lm import levenberg_marquardt
 

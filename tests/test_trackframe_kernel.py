@@ -1,4 +1,4 @@
-"""TrackFrame's numba rows (``factors.track_kernel``) against the numpy temporal residual
+"""TrackFrame's numba rows (``factors.trackframe_kernel``) against the numpy temporal residual
 (``factors.photometric.temporal_eval`` + ``sqrt_weights``, whose Jacobians the shared
 suite checks numerically): same whitened residuals, pose/affine Jacobian and validity,
 with and without the inverse-depth variance term."""
@@ -14,7 +14,7 @@ import pytest
 from cases_photometric import H, W, K, analytic_image
 from factors.image_ops import BilinearImage
 from factors.photometric import PhotometricParams, make_host_patch, sqrt_weights, temporal_eval
-from factors.track_kernel import track_rows
+from factors.trackframe_kernel import track_rows
 
 
 @pytest.mark.parametrize("seed,use_var", [(1, False), (2, True), (3, True)])
