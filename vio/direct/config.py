@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from vio.direct.photocal import PhotoCalConfig
+
 
 @dataclass(frozen=True)
 class SelectConfig:
@@ -198,3 +200,4 @@ class DirectConfig:
     epipolar: EpipolarConfig = field(default_factory=EpipolarConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
     points: PointsConfig = field(default_factory=PointsConfig)
+    photometric: PhotoCalConfig = field(default_factory=PhotoCalConfig)

@@ -43,12 +43,15 @@ newest keyframe and their residuals) at ``attach``.
 from __future__ import annotations
 
 import dataclasses
+import logging
+from pathlib import Path
 
 import gtsam
 import numpy as np
 
 from vio.backend.tracks import LandmarkManager
 from vio.direct.keyframe import StereoRig
+from vio.direct.photocal import PhotoCalConfig, load_calibration
 from vio.direct.source import PhotometricSource
 from vio.imu import integrate
 from vio.io.types import FeatureFrame
@@ -56,6 +59,7 @@ from vio.sync import FramePacket
 from vio.tracking import ImageStage
 
 X = gtsam.symbol_shorthand.X
+log = logging.getLogger(__name__)
 
 
 class FeaturelessLandmarks(LandmarkManager):
@@ -122,6 +126,28 @@ class DirectStage:
         return FeatureFrame(pkt.t_ns, ids_a, uv, np.zeros_like(uv), np.full(len(ids_a), np.nan))
 
 
+def _cam_dir(cam) -> Path | None:
+    """The folder holding a camera's ``data.csv`` (where a photometric calibration
+    would be), None for sources without one (bags)."""
+    files = getattr(cam, "files", None)
+    if not files:
+        return None
+    d = Path(files[0]).parent.parent
+    return d if (d / "data.csv").exists() else None
+
+
+def _rig(data, pc: PhotoCalConfig) -> StereoRig:
+    """The stereo rig with each camera's photometric calibration (logged when one is used)."""
+    cals = []
+    for i, cam in enumerate((data.cam0, data.cam1)):
+        w, h = cam.calib.resolution
+        cal = load_calibration(_cam_dir(cam), (h, w), pc, cam0=i == 0)
+        if not cal.identity:
+            log.info("cam%d photometric calibration: %s", i, cal.source)
+        cals.append(cal)
+    return StereoRig(data.cam0.calib, data.cam1.calib, *cals)
+
+
 def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
     """Register the photometric source of ``cfg.direct`` in ``pipe`` (before its first
     keyframe) and return the packet stage; direct mode (``hybrid=False``) also replaces
@@ -131,7 +157,7 @@ def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
         raise RuntimeError("attach the direct source before the pipeline is initialized")
     if data.cam1 is None:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
-    source = PhotometricSource(pipe.est, StereoRig(data.cam0.calib, data.cam1.calib), cfg.direct)
+    source = PhotometricSource(pipe.est, _rig(data, cfg.direct.photometric), cfg.direct)
     pipe.est.sources.append(source)
     if not hybrid:
         pipe.est.lm = FeaturelessLandmarks(pipe.est)
