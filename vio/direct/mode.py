@@ -158,6 +158,7 @@ def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
     if data.cam1 is None:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
     source = PhotometricSource(pipe.est, _rig(data, cfg.direct.photometric), cfg.direct)
+    source.warm_up()
     pipe.est.sources.append(source)
     if not hybrid:
         pipe.est.lm = FeaturelessLandmarks(pipe.est)

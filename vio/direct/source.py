@@ -40,7 +40,7 @@ import numpy as np
 
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch, temporal_eval
-from factors.photometric_host import HostParams, HostPoints, StereoHost, host_factor
+from factors.photometric_host import HostParams, HostPoints, StereoHost, host_factor, host_residual_fn
 from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
@@ -117,6 +117,27 @@ class PhotometricSource:
         self.last_stats: dict = {}
         a, b = pc.affine_sigma
         self._ab_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, b]))
+
+    def warm_up(self) -> None:
+        """Load (or compile) the Numba kernels of keyframe building, TrackFrame and the
+        host factor now, on a noise image pair of the cameras' size: their first calls
+        otherwise stall the first keyframes after initialization (~1.5 s to compile on
+        a fresh install, ~0.3 s to load from Numba's cache)."""
+        import cv2
+
+        w, h = self.rig.cam0.resolution
+        img = cv2.blur(np.random.default_rng(0).uniform(20, 230, (h, w)), (5, 5))   # smooth texture
+        kd = build_keyframe(-1, 0, img, img, self.rig, self.cfg)
+        if len(kd.uv) == 0:
+            return
+        track_frame(kd.reference(np.zeros(2), self.cfg), kd.image, gtsam.Pose3(), np.zeros(2),
+                    self.cfg.track, MotionPrior(gtsam.Pose3(), 1e-3, 1e-3))
+        n = min(len(kd.uv), 8)
+        pts = HostPoints.create(make_host_patch(kd.left, kd.uv[:n], self.rig.K0), kd.idepth[:n],
+                                self.cfg.points.grad_c, self.cfg.points.max_targets)
+        stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
+        fn = host_residual_fn(pts, [kd.left._stack], self.rig.K0, self.rig.T_b_c, self.params, stereo)
+        fn([gtsam.Pose3(), np.zeros(2), gtsam.Pose3(), np.zeros(2)])
 
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
