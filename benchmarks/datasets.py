@@ -40,6 +40,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 V1_01 = SHARED / "euroc_V1_01_30s_features"
+MH_01_STEREO = SHARED / "euroc_MH_01_stereo_synimu"   # real stereo images, IMU from ground truth
 IMU_GT = SHARED / "euroc_imu_gt"
 SEQUENCES = ("MH_03_medium", "MH_04_difficult", "MH_05_difficult", "V1_02_medium",
              "V1_03_difficult", "V2_01_easy", "V2_02_medium", "V2_03_difficult")
@@ -180,15 +181,19 @@ def sim_spec(mode: str, label: str, seed: int, seconds: float, stereo: bool = Tr
 
 
 def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
-    """The rendered sequences a mode runs on: the stereo ones (global shutter, rolling
-    shutter, exposure changes) for ``stereo``, the exposure-change one for ``direct`` and
-    ``hybrid``, the cam0-only one for ``mono``; 20 s (quick: 8 s)."""
+    """The sequences a mode runs on: the real MH_01 stereo images (320 pairs; quick: 120)
+    for ``stereo``, ``direct`` and ``hybrid``, then the rendered ones: the stereo ones
+    (global shutter, rolling shutter, exposure changes) for ``stereo``, the
+    exposure-change one for ``direct`` and ``hybrid``, the cam0-only one for ``mono``;
+    20 s (quick: 8 s)."""
     seconds = 8.0 if quick else 20.0
     want_stereo = mode != "mono"
     photometric = mode in ("direct", "hybrid")
-    return [sim_spec(mode, label, seed, seconds, stereo, **extra)
-            for label, seed, extra, stereo in SIM_SEQUENCES
-            if stereo == want_stereo and (not photometric or label in PHOTOMETRIC_SEQUENCES)]
+    real = [DatasetSpec("MH_01_real_stereo", mode, MH_01_STEREO, None, 0.0, group="MH_01_real_stereo",
+                        max_frames=120 if quick else None)] if want_stereo else []
+    return real + [sim_spec(mode, label, seed, seconds, stereo, **extra)
+                   for label, seed, extra, stereo in SIM_SEQUENCES
+                   if stereo == want_stereo and (not photometric or label in PHOTOMETRIC_SEQUENCES)]
 
 
 MODES: dict[str, Mode] = {

@@ -176,30 +176,15 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
 
 
 @_njit
-def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
-                t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k,
-                outlier_rms, iters, rho_min, rho_max, update):
-    """Reduced normal equations of one host (module docstring).
-
-    Returns (H (n, n), g (n,), cost, reduced cost, n points used); with ``update`` the
-    refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``.
-    """
+def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
+                st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, outlier_rms, iters,
+                rho_min, rho_max):
+    """Pass 1 of :func:`host_system`, one point at a time (~3/4 of the kernel's warps; a
+    numba ``prange`` over the points cost 4x more per call on the shared 2-core machine
+    of the measurements): (refined rho (N,), pattern RMS (N, M) with
+    -1 for a pattern that left the image and inf for one not judged, stereo/depth ok (N,))."""
     N, P = Ii.shape
     M = R_ji.shape[0]
-    n = 8 * (M + 1)
-    H = np.zeros((n, n))
-    g = np.zeros(n)
-    hx = np.zeros(n)
-    Jh = np.zeros(8)
-    Jt = np.zeros(8)
-    smp = np.empty(3)
-    dq = np.empty(3)
-    gb = np.empty(3)
-    hh = np.empty(3)
-    cost = 0.0
-    red = 0.0
-    used = 0
-    # pass 1: refined depths, stereo check, pattern RMS of every (point, target)
     rp = rho.copy()
     ms = np.full((N, M), np.inf)
     ok_p = alive.copy()
@@ -227,6 +212,38 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
                     ms[p, m] = -1.0                   # out of the image: off for good
                 elif nv >= nh - 2:
                     ms[p, m] = math.sqrt(ss / nv)
+    return rp, ms, ok_p
+
+
+@_njit
+def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
+                t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k,
+                outlier_rms, iters, rho_min, rho_max, update):
+    """Reduced normal equations of one host (module docstring).
+
+    Returns (H (n, n), g (n,), cost, reduced cost, n points used); with ``update`` the
+    refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``.
+    """
+    N, P = Ii.shape
+    M = R_ji.shape[0]
+    n = 8 * (M + 1)
+    H = np.zeros((n, n))
+    g = np.zeros(n)
+    hx = np.zeros(n)
+    Jh = np.zeros(8)
+    Jt = np.zeros(8)
+    smp = np.empty(3)
+    dq = np.empty(3)
+    gb = np.empty(3)
+    hh = np.empty(3)
+    cost = 0.0
+    red = 0.0
+    used = 0
+    # pass 1: refined depths, stereo check, pattern RMS of
+    # every (point, target)
+    rp, ms, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
+                               ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo,
+                               huber_k, outlier_rms, iters, rho_min, rho_max)
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
     # the whole image fits worse (blur, a changed exposure not yet estimated)
     th = np.full(M, outlier_rms)

@@ -110,10 +110,17 @@ def test_readme_section_only_between_markers(tmp_path, capsys):
 def test_registry_lists_image_specs():
     import datasets as ds
     specs, skipped = ds.registry(quick=False, modes=["stereo", "mono", "direct", "hybrid"])
+    real = [s for s in specs if s.sim is None]
+    # the real MH_01 stereo images run in stereo, direct and hybrid (skipped, with the
+    # reason, where ../shared is absent)
+    assert sorted(s.mode for s in real) == (["direct", "hybrid", "stereo"] if real else [])
+    assert all(s.source == ds.MH_01_STEREO and s.td_true_s == 0.0 for s in real)
+    assert set(skipped) == (set() if real else {"MH_01_real_stereo"})
+    specs = [s for s in specs if s.sim is not None]
     by_mode: dict = {}
     for s in specs:
         by_mode.setdefault(s.mode, []).append(s)
-    assert sorted(by_mode) == ["direct", "hybrid", "mono", "stereo"] and not skipped
+    assert sorted(by_mode) == ["direct", "hybrid", "mono", "stereo"]
     for s in specs:
         c = s.sim_config()
         assert s.generated and s.td_true_s == c.td_s == (0.0 if c.exposure_changes == "smooth" else 0.010)
@@ -128,6 +135,7 @@ def test_registry_lists_image_specs():
         assert only.group in {s.group for s in by_mode["stereo"]}
     assert len(specs) == 6 and len({s.key() for s in specs}) == 4    # one rendering per sequence
     quick, _ = ds.registry(quick=True, modes=["stereo", "mono"])
+    quick = [s for s in quick if s.sim is not None]
     assert [s.sim_config().seconds for s in quick] == [8.0] * 4
     assert {s.key() for s in quick}.isdisjoint({s.key() for s in specs})
 

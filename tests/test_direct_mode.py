@@ -64,10 +64,10 @@ def test_point_residual_rows_and_weights():
 
 
 def test_points_config_is_strict():
-    cfg = from_dict(DirectConfig, {"points": {"max_active": 80, "affine_sigma": [0.5, 10.0]}})
-    assert cfg.points.max_active == 80 and cfg.points.affine_sigma == (0.5, 10.0)
+    cfg = from_dict(DirectConfig, {"points": {"max_points": 80, "affine_sigma": [0.5, 10.0]}})
+    assert cfg.points.max_points == 80 and cfg.points.affine_sigma == (0.5, 10.0)
     with pytest.raises(ConfigError):
-        from_dict(DirectConfig, {"points": {"max_activ": 80}})
+        from_dict(DirectConfig, {"points": {"max_point": 80}})
     with pytest.raises((ConfigError, ValueError)):
         from_dict(DirectConfig, {"points": {"max_targets": 0}})
 
@@ -101,7 +101,7 @@ def _small(hybrid: bool) -> PipelineConfig:
     cfg = default_config("hybrid" if hybrid else "direct")
     d = cfg.direct
     d = dataclasses.replace(d, select=dataclasses.replace(d.select, n_points=200, block=16),
-                            points=dataclasses.replace(d.points, max_active=80 if hybrid else 100))
+                            points=dataclasses.replace(d.points, max_points=80 if hybrid else 100))
     return dataclasses.replace(cfg, direct=d)
 
 
@@ -178,8 +178,28 @@ def test_photometric_mode_defaults_yield_to_yaml(tmp_path):
     d, h = default_config("direct").backend, default_config("hybrid").backend
     assert (d.keyframe.min_parallax_px, d.solver.relinearize_skip, d.solver.relinearize_threshold) == (40.0, 1, 0.005)
     assert h.keyframe.min_parallax_px == default_config("features").backend.keyframe.min_parallax_px
-    assert h.solver.relinearize_skip == 1
+    assert h.solver.relinearize_skip == default_config("features").backend.solver.relinearize_skip
     y = tmp_path / "c.yaml"
     y.write_text("backend:\n  keyframe: {min_parallax_px: 25.0}\n  solver: {relinearize_skip: 3}\n")
     c = load_config(y, mode="direct").backend
     assert (c.keyframe.min_parallax_px, c.solver.relinearize_skip, c.solver.relinearize_threshold) == (25.0, 3, 0.005)
+
+
+@pytest.mark.slow
+def test_direct_mode_tracks_real_stereo_images():
+    """Real MH_01 stereo images (IMU synthesized from the ground truth), past keyframe
+    ~30 where the keyframe guess used to carry a rotation whose rounding error tripled
+    at every keyframe (0.5% shear by then) and the run diverged (12 m ATE over 320
+    frames); now 5 mm there. Every TrackFrame guess and every keyframe pose stays a
+    rotation."""
+    from conftest import shared
+    data = load_euroc(shared("euroc_MH_01_stereo_synimu"))
+    rot_err = []
+    sink = _SnapshotSink()
+    res = run_dataset(data, default_config("direct"), max_frames=170, mode="direct", sinks=[sink])
+    for o in res.outputs:
+        R = o.T_w_b.rotation().matrix()
+        rot_err.append(np.abs(R @ R.T - np.eye(3)).max())
+    assert max(rot_err) < 1e-9
+    e = evaluate(*res.arrays(), data.groundtruth)
+    assert e.ate_rmse < 0.02, f"direct on real MH_01: ATE {e.ate_rmse:.4f} m"

@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from vio.direct.photocal import PhotoCalConfig
+
 
 @dataclass(frozen=True)
 class SelectConfig:
@@ -88,7 +90,7 @@ class LMConfig:
 class TrackConfig:
     """TrackFrame (seed Algorithm 3): coarse-to-fine direct alignment to a keyframe.
 
-    ``levels`` pyramid levels; ``iters`` max LM iterations per level, coarsest first
+    ``enabled``: run it at each keyframe (direct mode's failure signal); ``levels`` pyramid levels; ``iters`` max LM iterations per level, coarsest first
     (one entry per level); ``sigma_I``, ``grad_c``: photometric weights
     (factors.photometric); ``huber_k`` on the whitened residual; ``oob_residual``
     whitened residual charged to a pattern pixel that leaves the image (so leaving is
@@ -96,8 +98,14 @@ class TrackConfig:
     ``max_rmse`` (intensity units) for ``ok``; ``use_idepth_var`` includes the seed's
     (dr/drho)^2 V term. ``lm_*`` set the per-level ``LMConfig`` (Marquardt diagonal
     damping by default: pose and the intensity offset b have very different scales).
+    ``imu_prior``: once the IMU is initialized, the IMU-predicted relative pose is a
+    Gaussian prior of the alignment (``vio.direct.trackframe.MotionPrior``) with sigmas
+    from the preintegration covariance, at least ``prior_rot_sigma`` (rad) and, for the
+    translation, ``prior_trans_sigma`` (m) plus ``prior_vel_sigma`` (m/s, the previous
+    keyframe's velocity uncertainty) times the interval.
     """
 
+    enabled: bool = True
     levels: int = 4
     iters: tuple[int, ...] = (20, 15, 10, 8)
     sigma_I: float = 4.0
@@ -105,15 +113,21 @@ class TrackConfig:
     huber_k: float = 1.345
     oob_residual: float = 2.0
     min_valid_fraction: float = 0.3
-    max_rmse: float = 25.0
+    max_rmse: float = 15.0
     use_idepth_var: bool = True
     lm_tau: float = 1e-4
     lm_eps2: float = 1e-6
     lm_eps4: float = 1e-5
     lm_max_rejects: int = 4
     lm_damping: Literal["identity", "diagonal"] = "diagonal"
+    imu_prior: bool = True
+    prior_rot_sigma: float = 0.0005
+    prior_trans_sigma: float = 0.001
+    prior_vel_sigma: float = 0.02
 
     def __post_init__(self) -> None:
+        if min(self.prior_rot_sigma, self.prior_trans_sigma) <= 0 or self.prior_vel_sigma < 0:
+            raise ValueError("TrackConfig: prior sigmas must be positive")
         if self.levels < 1 or len(self.iters) != self.levels:
             raise ValueError(f"TrackConfig: iters needs one entry per level ({self.levels}), "
                              f"got {len(self.iters)}")
@@ -129,50 +143,53 @@ class TrackConfig:
 class PointsConfig:
     """Photometric points in the estimator's graph (``vio.direct.source``).
 
-    Every keyframe gets ``select.n_points`` candidates with epipolar depths (they are
-    also its TrackFrame reference). ``max_active`` caps the points still gaining
-    targets (each point is one Python factor: this bounds the callbacks per keyframe);
-    a point gains a target in each new keyframe until it has ``max_targets``, leaves
-    the image (fewer than ``min_inside`` of its pattern pixels inside) or looks
-    occluded (residual RMSE above ``max_target_rmse`` intensity units at the initial
-    guess); then it stays in the graph until its host is marginalized. New points keep
-    ``min_spacing_px`` from the projections of the active ones. ``sigma_I``, ``grad_c``,
-    ``huber_k``: factor weights (``factors.photometric``); ``stereo_weight`` lambda of
-    E = E_d + lambda E_s. ``affine_sigma`` (a, b) prior std of every keyframe's [a, b]
-    (left image) around 0 and of the right image's relative [a, b] around its initial
-    estimate (gauge and weak regularization). ``min_depth_m``/``max_depth_m`` bound new
-    points' epipolar depth. ``use_track_guess``: TrackFrame's pose replaces the IMU
+    Every keyframe hosts up to ``max_points`` of its ``select.n_points`` candidates that
+    got an epipolar depth within [``min_depth_m``, ``max_depth_m``]; they are observed in
+    the next ``max_targets`` keyframes, one factor per host
+    (``factors.photometric_host``: inverse depths eliminated inside, refined with
+    ``refine_iters`` Gauss-Newton steps per linearization). A host stops gaining
+    targets once fewer than ``min_visible`` of its points project into the new
+    keyframe. ``sigma_I``, ``grad_c``, ``huber_k``: residual weights
+    (``factors.photometric``; Huber on the whitened residual); ``stereo_weight`` lambda
+    of E = E_d + lambda E_s. ``outlier_rms`` (intensity units): a (point, target) pair
+    whose raw residual RMS exceeds it after the depth refinement is switched off for
+    good (DSO's outlier state), likewise a point whose static stereo RMS does.
+    ``damping``: Marquardt damping mu diag(H) in each host factor's square-root form
+    (iSAM2 takes undamped Gauss-Newton steps; the photometric cost is convex only
+    within a pixel or two, so a damped step keeps the keyframes in the basin; it
+    vanishes at convergence since the gradient is left as is).
+    ``affine_sigma`` (a, b) prior std of every keyframe's [a, b] around 0 (gauge and
+    weak regularization). ``use_track_guess``: TrackFrame's pose replaces the IMU
     prediction as the keyframe's initial guess when it is ``ok`` and within
-    ``track_gate_m`` / ``track_gate_rad`` of the prediction. After each update every
-    point in the graph is re-checked at the new estimate: a target whose RMSE exceeds
-    ``max_target_rmse`` (or that left the image) is dropped from the point's factor;
-    an inverse depth outside the depth range, or no target left, removes the point
-    (outlier). The backend settings these modes need (iSAM2 relinearization, direct
-    mode's keyframe parallax) are mode defaults in ``vio.run.MODE_DEFAULTS``, so a YAML
-    file overrides them like any other backend value.
+    ``track_gate_m`` / ``track_gate_rad`` of the prediction. The backend settings these
+    modes need (iSAM2 relinearization, direct mode's keyframe parallax) are mode
+    defaults in ``vio.run.MODE_DEFAULTS``, so a YAML file overrides them.
     """
 
-    max_active: int = 100
-    max_targets: int = 4
-    min_inside: float = 0.75
-    max_target_rmse: float = 20.0
-    min_spacing_px: float = 10.0
+    max_points: int = 150
+    max_targets: int = 5
+    min_visible: float = 0.3
+    refine_iters: int = 2
+    damping: float = 0.01
+    outlier_rms: float = 15.0
     sigma_I: float = 4.0
     grad_c: float = 50.0
-    huber_k: float = 0.5
+    huber_k: float = 1.5
     stereo_weight: float = 1.0
     affine_sigma: tuple[float, float] = (1.0, 20.0)
     min_depth_m: float = 0.2
     max_depth_m: float = 30.0
-    use_track_guess: bool = False
+    use_track_guess: bool = True
     track_gate_m: float = 0.05
     track_gate_rad: float = 0.05
 
     def __post_init__(self) -> None:
-        if self.max_active < 0 or self.max_targets < 1 or not 0 < self.min_inside <= 1:
-            raise ValueError("PointsConfig: need max_active >= 0, max_targets >= 1, 0 < min_inside <= 1")
+        if self.max_points < 1 or self.max_targets < 1 or not 0 <= self.min_visible <= 1:
+            raise ValueError("PointsConfig: need max_points >= 1, max_targets >= 1, 0 <= min_visible <= 1")
         if len(self.affine_sigma) != 2 or min(self.affine_sigma) <= 0:
             raise ValueError("PointsConfig: affine_sigma needs two positive stds (a, b)")
+        if self.outlier_rms <= 0 or self.refine_iters < 0 or not 0 < self.min_depth_m < self.max_depth_m:
+            raise ValueError("PointsConfig: need outlier_rms > 0, refine_iters >= 0, 0 < min_depth_m < max_depth_m")
 
 
 @dataclass(frozen=True)
@@ -183,3 +200,4 @@ class DirectConfig:
     epipolar: EpipolarConfig = field(default_factory=EpipolarConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
     points: PointsConfig = field(default_factory=PointsConfig)
+    photometric: PhotoCalConfig = field(default_factory=PhotoCalConfig)

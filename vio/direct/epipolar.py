@@ -22,9 +22,11 @@ V = sigma_px^2 / |d x / d rho|^2 with d x / d rho = d pi / d q t (pixels per 1/m
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import gtsam
 import numpy as np
+from numba import njit
 
 from factors.image_ops import BilinearImage, ImageSampler
 from factors.photometric import PATTERN, Pinhole, make_host_patch
@@ -92,31 +94,74 @@ def _patch_cost(target: ImageSampler, centers: np.ndarray, offs: np.ndarray, ref
     return (diff ** 2).sum(-1), valid.all(-1), diff, gx, gy
 
 
-def _discrete_search(target, x0, l, length, ok, offs, ref, cfg, chunk: int = 64):
+@njit(cache=True, nogil=True)
+def _search_kernel(stack, x0, l, length, ok, offs, ref, step, S, zero_mean):
+    """Per point: best sample index along the segment (interior minimum only), its SSD
+    and the second best SSD beyond +-2 px (numba; see ``_discrete_search``)."""
+    n, P = ref.shape
+    h, w = stack.shape[0], stack.shape[1]
+    k_best = np.zeros(n, np.int64)
+    best = np.full(n, np.inf)
+    second = np.full(n, np.inf)
+    e = np.empty(S)
+    d = np.empty(P)
+    for i in range(n):
+        if not ok[i]:
+            continue
+        for j in range(S):
+            e[j] = np.inf
+            sj = j * step
+            if sj > length[i] + 1e-9:
+                continue
+            cu = x0[i, 0] + sj * l[i, 0]
+            cv = x0[i, 1] + sj * l[i, 1]
+            good = True
+            mean = 0.0
+            for k in range(P):
+                u = cu + offs[k, 0]
+                v = cv + offs[k, 1]
+                if not (u >= 1.0 and u < w - 2.0 and v >= 1.0 and v < h - 2.0):
+                    good = False
+                    break
+                u0, v0 = int(u), int(v)
+                fx, fy = u - u0, v - v0
+                top = stack[v0, u0, 0] + fx * (stack[v0, u0 + 1, 0] - stack[v0, u0, 0])
+                bot = stack[v0 + 1, u0, 0] + fx * (stack[v0 + 1, u0 + 1, 0] - stack[v0 + 1, u0, 0])
+                d[k] = top + fy * (bot - top) - ref[i, k]
+                mean += d[k]
+            if not good:
+                continue
+            mean = mean / P if zero_mean else 0.0
+            ssd = 0.0
+            for k in range(P):
+                ssd += (d[k] - mean) ** 2
+            e[j] = ssd
+        kb = 0
+        for j in range(S):
+            if e[j] < e[kb]:
+                kb = j
+        if kb == 0 or kb == S - 1 or not np.isfinite(e[kb - 1]) or not np.isfinite(e[kb + 1]):
+            continue      # the true match may lie outside the searched segment
+        k_best[i] = kb
+        best[i] = e[kb]
+        for j in range(S):
+            if abs(j - kb) * step > 2.0 and e[j] < second[i]:
+                second[i] = e[j]
+    return k_best, best, second
+
+
+def _discrete_search(target, x0, l, length, ok, offs, ref, cfg):
     """Best sample position s (N,), its SSD and quality (second best beyond +-2 px / best)."""
-    n = len(x0)
     S = int(min(cfg.max_steps, np.ceil(length[ok].max() / cfg.step_px) + 1)) if ok.any() else 1
-    s = np.arange(S) * cfg.step_px
-    s_best, best, quality = np.zeros(n), np.full(n, np.inf), np.zeros(n)
-    for a in range(0, n, chunk):
-        sl = slice(a, min(n, a + chunk))
-        centers = x0[sl, None, :] + s[None, :, None] * l[sl, None, :]
-        e, valid, _, _, _ = _patch_cost(target, centers, offs, ref[sl, None, :], cfg.zero_mean)
-        valid &= (s[None, :] <= length[sl, None] + 1e-9) & ok[sl, None]
-        e = np.where(valid, e, np.inf)
-        k = np.argmin(e, axis=1)
-        b = e[np.arange(len(k)), k]
-        # an interior minimum only: a best sample at a clipped end (image border or the
-        # idepth range) means the true match may lie outside the searched segment
-        rows = np.arange(len(k))
-        inner = (k > 0) & (k < S - 1)
-        inner &= np.isfinite(e[rows, np.maximum(k - 1, 0)]) & np.isfinite(e[rows, np.minimum(k + 1, S - 1)])
-        b = np.where(inner, b, np.inf)
-        far = np.abs(s[None, :] - s[k][:, None]) > 2.0
-        second = np.where(far, e, np.inf).min(axis=1)
-        s_best[sl], best[sl] = s[k], b
-        quality[sl] = np.where(np.isfinite(b), second / np.where(np.isfinite(b), np.maximum(b, 1e-9), 1.0), 0.0)
-    return s_best, best, quality
+    stack = getattr(target, "_stack", None)
+    if stack is None:
+        raise TypeError("epipolar_search: the target image must be an array or a BilinearImage")
+    k, best, second = _search_kernel(stack, np.ascontiguousarray(x0), np.ascontiguousarray(l), length,
+                                     ok, np.ascontiguousarray(offs), np.ascontiguousarray(ref),
+                                     float(cfg.step_px), S, bool(cfg.zero_mean))
+    fin = np.isfinite(best)
+    quality = np.where(fin, second / np.where(fin, np.maximum(best, 1e-9), 1.0), 0.0)
+    return k * cfg.step_px, best, quality
 
 
 def _refine(target, x0, l, s, offs, ref, cfg):
@@ -204,7 +249,8 @@ def undistort_pinhole(image: np.ndarray, K: np.ndarray, distortion: tuple[float,
     """Undistort a (H, W) image to the pinhole camera with the same ``K`` (float64 output).
 
     ``model``: ``"radial-tangential"`` (k1, k2, p1, p2), ``"equidistant"`` (k1..k4) or
-    ``"none"``. Pixels mapped from outside the source are 0.
+    ``"none"``. Pixels mapped from outside the source are 0. The remap tables are
+    computed once per camera and image size (``_undistort_maps``).
     """
     import cv2  # the pipeline layer may use cv2; factors/ may not
 
@@ -212,12 +258,19 @@ def undistort_pinhole(image: np.ndarray, K: np.ndarray, distortion: tuple[float,
     if model == "none" or not any(distortion):
         return img.astype(np.float64)
     h, w = img.shape[:2]
-    K = np.asarray(K, dtype=np.float64)
-    d = np.asarray(distortion, dtype=np.float64)
-    if model == "equidistant":
-        m1, m2 = cv2.fisheye.initUndistortRectifyMap(K, d, np.eye(3), K, (w, h), cv2.CV_32FC1)
-    elif model == "radial-tangential":
-        m1, m2 = cv2.initUndistortRectifyMap(K, d, None, K, (w, h), cv2.CV_32FC1)
-    else:
-        raise ValueError(f"undistort_pinhole: unknown distortion model {model!r}")
+    m1, m2 = _undistort_maps(tuple(np.asarray(K, float).ravel()), tuple(float(d) for d in distortion),
+                             model, w, h)
     return cv2.remap(img.astype(np.float32), m1, m2, cv2.INTER_LINEAR).astype(np.float64)
+
+
+@lru_cache(maxsize=8)
+def _undistort_maps(K: tuple, distortion: tuple, model: str, w: int, h: int):
+    """cv2 remap tables (float32) of :func:`undistort_pinhole`."""
+    import cv2
+
+    Km, d = np.array(K).reshape(3, 3), np.array(distortion)
+    if model == "equidistant":
+        return cv2.fisheye.initUndistortRectifyMap(Km, d, np.eye(3), Km, (w, h), cv2.CV_32FC1)
+    if model == "radial-tangential":
+        return cv2.initUndistortRectifyMap(Km, d, None, Km, (w, h), cv2.CV_32FC1)
+    raise ValueError(f"undistort_pinhole: unknown distortion model {model!r}")

@@ -18,6 +18,7 @@ from factors.image_ops import BilinearImage
 from factors.photometric import PATTERN, Pinhole
 from vio.direct.config import DirectConfig
 from vio.direct.epipolar import epipolar_search, undistort_pinhole
+from vio.direct.photocal import PhotometricCalibration
 from vio.direct.select import select_points
 from vio.direct.trackframe import TrackingReference, make_reference
 from vio.io.types import CameraCalib
@@ -26,10 +27,13 @@ from vio.io.types import CameraCalib
 @dataclass(eq=False)
 class StereoRig:
     """The fixed stereo geometry: pinhole intrinsics of both cameras, ``T_b_c`` of
-    cam0 (body <- cam0) and ``T_c1_c0`` (cam1 <- cam0), and the distortion to remove."""
+    cam0 (body <- cam0) and ``T_c1_c0`` (cam1 <- cam0), the distortion to remove, and
+    each camera's photometric calibration (``vio.direct.photocal``; identity: none)."""
 
     cam0: CameraCalib
     cam1: CameraCalib
+    photo0: PhotometricCalibration = field(default_factory=PhotometricCalibration)
+    photo1: PhotometricCalibration = field(default_factory=PhotometricCalibration)
     K0: Pinhole = field(init=False)
     K1: Pinhole = field(init=False)
     T_b_c: gtsam.Pose3 = field(init=False)
@@ -42,7 +46,12 @@ class StereoRig:
         self.T_c1_c0 = self.cam1.T_b_c.between(self.cam0.T_b_c)
 
     def undistort(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Both images as undistorted pinhole float64 images (no-op without distortion)."""
+        """Both images as undistorted pinhole float64 images (no-op without distortion),
+        photometrically corrected first when a calibration is set."""
+        if not self.photo0.identity:
+            left = self.photo0.apply(left)
+        if not self.photo1.identity:
+            right = self.photo1.apply(right)
         return (undistort_pinhole(left, self.cam0.K, self.cam0.distortion, self.cam0.distortion_model),
                 undistort_pinhole(right, self.cam1.K, self.cam1.distortion, self.cam1.distortion_model))
 

@@ -43,12 +43,15 @@ class LMResult:
     converged: bool
 
 
-def robust_cost(r: np.ndarray, huber_k: float | None) -> tuple[float, np.ndarray]:
-    """F = sum rho(r_i) and the IRLS weights W_i = rho'(r_i) / r_i."""
+def robust_cost(r: np.ndarray, huber_k: float | None, n_plain: int = 0) -> tuple[float, np.ndarray]:
+    """F = sum rho(r_i) and the IRLS weights W_i = rho'(r_i) / r_i; the last ``n_plain``
+    residuals (a Gaussian prior) stay least squares."""
     a = np.abs(r)
     if huber_k is None:
         return 0.5 * float(r @ r), np.ones_like(r)
     inl = a <= huber_k
+    if n_plain:
+        inl[len(r) - n_plain:] = True
     F = float(np.sum(np.where(inl, 0.5 * r * r, huber_k * a - 0.5 * huber_k ** 2)))
     return F, np.where(inl, 1.0, huber_k / np.maximum(a, 1e-300))
 
@@ -57,8 +60,8 @@ def _vector_norm(x: Any) -> float:
     return float(np.linalg.norm(x)) if isinstance(x, np.ndarray) else 1.0
 
 
-def _normal_equations(r: np.ndarray, J: np.ndarray, huber_k: float | None):
-    F, w = robust_cost(r, huber_k)
+def _normal_equations(r: np.ndarray, J: np.ndarray, huber_k: float | None, n_plain: int = 0):
+    F, w = robust_cost(r, huber_k, n_plain)
     Jw = J * w[:, None]
     return F, Jw.T @ J, Jw.T @ r
 
@@ -74,17 +77,18 @@ def _solve(A: np.ndarray, g: np.ndarray, mu: float, D: np.ndarray) -> np.ndarray
 
 def levenberg_marquardt(fun: ResidualFn, x0: Any, config: LMConfig = LMConfig(),
                         retract: Callable[[Any, np.ndarray], Any] | None = None,
-                        norm: Callable[[Any], float] = _vector_norm) -> LMResult:
+                        norm: Callable[[Any], float] = _vector_norm, n_plain: int = 0) -> LMResult:
     """Minimize sum rho(r(x)) from ``x0``; see the module docstring.
 
     ``retract(x, h)`` defaults to ``x + h``; ``norm(x)`` scales the eps2 step test
-    (default: the Euclidean norm for arrays, 1 otherwise).
+    (default: the Euclidean norm for arrays, 1 otherwise); the last ``n_plain``
+    residuals are least squares whatever ``config.huber_k``.
     """
     retract = retract or (lambda x, h: x + h)
     c = config
     x = x0
     r, J = fun(x)
-    F, A, g = _normal_equations(r, J, c.huber_k)
+    F, A, g = _normal_equations(r, J, c.huber_k, n_plain)
     F0, evals, k, nu = F, 1, 0, 2.0
     diag_mode = c.damping == "diagonal"
     D = np.maximum(np.diag(A), 1e-12 * max(np.max(np.diag(A)), 1e-300)) if diag_mode else np.ones(len(g))
@@ -104,14 +108,14 @@ def levenberg_marquardt(fun: ResidualFn, x0: Any, config: LMConfig = LMConfig(),
                 x_new = retract(x, h)
                 r_new, J_new = fun(x_new)
                 evals += 1
-                F_new, _ = robust_cost(r_new, c.huber_k)
+                F_new, _ = robust_cost(r_new, c.huber_k, n_plain)
                 denom = 0.5 * float(h @ (mu * D * h - g))
                 gain = (F - F_new) / denom if denom > 0 else -1.0
                 if gain > 0 and np.isfinite(F_new):
                     if np.sqrt(F) - np.sqrt(F_new) < c.eps4 * np.sqrt(F):
                         reason = "small_decrease"
                     x, r, J = x_new, r_new, J_new
-                    F, A, g = _normal_equations(r, J, c.huber_k)
+                    F, A, g = _normal_equations(r, J, c.huber_k, n_plain)
                     if diag_mode:
                         D = np.maximum(D, np.diag(A))
                     if np.max(np.abs(g)) <= c.eps1:

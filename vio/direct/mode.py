@@ -3,11 +3,11 @@
 
 ``attach(pipe, data, cfg, hybrid)`` registers the source in ``pipe.est.sources`` and
 returns the per-packet stage (``DirectStage``) that ``run_dataset`` applies before
-``pipe.process``: it loads the stereo images onto the packet (``packet.images``) for
-the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
+``pipe.process``: it supplies the ``FeatureFrame`` the pipeline needs; the source's
+``observe`` reads a keyframe's stereo pair from the packet's files.
 
 * hybrid: the usual stereo KLT stage (``vio.tracking.ImageStage``) runs on every
-  frame; its features give the backend's projection/stereo landmark factors, and the
+  frame, in the front-end worker process as in stereo mode; its features give the backend's projection/stereo landmark factors, and the
   photometric point factors are added to the same graph.
 * direct: photometric + IMU only. The backend's landmark manager is replaced by
   ``FeaturelessLandmarks``, which ignores every feature observation, so the graph holds
@@ -15,16 +15,20 @@ the source's ``observe``, and supplies the ``FeatureFrame`` the pipeline needs.
   the dynamic (visual-inertial) initialization aligns feature tracks, and the
   keyframe decisions of its buffered window use them. After that KLT is not run; the
   keyframe / stillness decisions of ``Pipeline`` (mean flow since the last keyframe,
-  number of common features) see ``FeatureFrame``s made of the points of the last two
-  keyframes (epipolar depths) projected into the frame with the IMU-propagated pose
+  number of common features) see ``FeatureFrame``s made of the live points of every
+  host in the window (their refined inverse depths, ``PhotometricSource.live_points``)
+  projected into the frame with the IMU-propagated pose
   since the newest keyframe (ids = keyframe * 1e6 + point index; points that leave the
   image drop out, so a view change also triggers a keyframe). These frames carry no
   measurement: nothing in them reaches the graph.
 
-Both modes' defaults (``vio.run.MODE_DEFAULTS``; a YAML file overrides them) relinearize
+Direct mode's defaults (``vio.run.MODE_DEFAULTS``; a YAML file overrides them) relinearize
 iSAM2 at every update with threshold 0.005: with the backend's default (every 10th
 update) the photometric factors stay at stale linearization points and the window
-diverged within 1 s on the simulated sequence. Direct mode's default keyframe parallax
+diverged within 1 s on the simulated sequence (measured with per-point factors). Hybrid,
+whose KLT landmarks hold the window too, keeps the every-10th default: same ATE on real
+MH_01 and the renders, and its second (outlier) update no longer relinearizes every
+host. Direct mode's default keyframe parallax
 is 40 px instead of 20: the projected points follow rotation, so at 20 px a turn made
 almost every frame a keyframe (279 keyframes in 20 s, 1.1 s per frame); at 40 px the
 seed-3 sequence has 150 keyframes, 0.3 s per frame and the same ATE (2.5 cm); 60 px
@@ -39,20 +43,23 @@ newest keyframe and their residuals) at ``attach``.
 from __future__ import annotations
 
 import dataclasses
+import logging
+from pathlib import Path
 
 import gtsam
 import numpy as np
 
 from vio.backend.tracks import LandmarkManager
 from vio.direct.keyframe import StereoRig
+from vio.direct.photocal import PhotoCalConfig, load_calibration
 from vio.direct.source import PhotometricSource
 from vio.imu import integrate
-from vio.io.euroc import read_image
 from vio.io.types import FeatureFrame
 from vio.sync import FramePacket
 from vio.tracking import ImageStage
 
 X = gtsam.symbol_shorthand.X
+log = logging.getLogger(__name__)
 
 
 class FeaturelessLandmarks(LandmarkManager):
@@ -64,23 +71,26 @@ class FeaturelessLandmarks(LandmarkManager):
 
 
 class DirectStage:
-    """Per-packet stage of the direct / hybrid modes (module docstring)."""
+    """Per-packet stage of the direct / hybrid modes (module docstring). ``klt`` None:
+    the KLT features come with the packets (the front-end worker process, hybrid)."""
 
-    def __init__(self, pipe, data, cfg, hybrid: bool, source: PhotometricSource) -> None:
+    def __init__(self, pipe, data, cfg, hybrid: bool, source: PhotometricSource,
+                 klt: bool = True) -> None:
         self.pipe, self.hybrid, self.source = pipe, hybrid, source
-        self.klt = ImageStage(data.cam0.calib, data.cam1.calib, cfg.frontend)
+        self.klt = ImageStage(data.cam0.calib, data.cam1.calib, cfg.frontend) if klt else None
         self.cam0 = data.cam0.calib
         self._k = None
         self._pim = None
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
-        imgs = pkt.images or tuple(read_image(p) for p in pkt.image_files[:2])
-        if len(imgs) < 2:
+        if max(len(pkt.images), len(pkt.image_files)) < 2:
             raise ValueError(f"frame {pkt.stamp_ns}: direct/hybrid mode needs cam0 and cam1 images")
-        pkt = dataclasses.replace(pkt, images=tuple(imgs))
         est = self.pipe.est
         if self.hybrid or not est.initialized:
-            return self.klt(pkt)
+            return pkt if self.klt is None else self.klt(pkt)
+        # direct after initialization: no image is read here; the source reads a
+        # keyframe's pair when it observes it (two PNG decodes per frame were ~20% of
+        # direct mode's time on real MH_01, where 3 frames in 10 are keyframes)
         return dataclasses.replace(pkt, features=self._flow_features(pkt))
 
     def _predict(self, pkt: FramePacket) -> gtsam.Pose3:
@@ -100,38 +110,55 @@ class DirectStage:
         pipeline's flow (stillness, parallax) compares the same points across frames."""
         src, est = self.source, self.pipe.est
         T_c_w = self._predict(pkt).compose(src.rig.T_b_c).inverse()
-        by_host: dict[int, list] = {}
-        for p in src.points.values():
-            if est.values.exists(p.key):
-                by_host.setdefault(p.host, []).append(p)
         ids, uvs = [], []
         w, h = self.cam0.resolution
-        for f, pts in by_host.items():
-            if not est.values.exists(X(f)):
-                continue
+        for f, uv_h, rho, idx in src.live_points():
             T = T_c_w.compose(est.values.atPose3(X(f)).compose(src.rig.T_b_c))
-            rho = np.array([est.values.atVector(p.key)[0] for p in pts])
-            q = src.rig.K0.unproject(np.array([p.uv for p in pts])) / np.maximum(rho, 1e-6)[:, None]
+            q = src.rig.K0.unproject(uv_h) / np.maximum(rho, 1e-6)[:, None]
             q = q @ T.rotation().matrix().T + T.translation()
             z = q[:, 2]
             px = src.rig.K0.project(np.where(z[:, None] > 0.05, q, 1.0))
             ok = (z > 0.05) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-            ids.append(np.array([p.pid for p in pts])[ok])
+            ids.append((f * 1_000_000 + idx)[ok])
             uvs.append(q[ok, :2] / z[ok, None])
         ids_a = np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64)
         uv = np.concatenate(uvs) if uvs else np.zeros((0, 2))
         return FeatureFrame(pkt.t_ns, ids_a, uv, np.zeros_like(uv), np.full(len(ids_a), np.nan))
 
 
-def attach(pipe, data, cfg, hybrid: bool) -> DirectStage:
+def _cam_dir(cam) -> Path | None:
+    """The folder holding a camera's ``data.csv`` (where a photometric calibration
+    would be), None for sources without one (bags)."""
+    files = getattr(cam, "files", None)
+    if not files:
+        return None
+    d = Path(files[0]).parent.parent
+    return d if (d / "data.csv").exists() else None
+
+
+def _rig(data, pc: PhotoCalConfig) -> StereoRig:
+    """The stereo rig with each camera's photometric calibration (logged when one is used)."""
+    cals = []
+    for i, cam in enumerate((data.cam0, data.cam1)):
+        w, h = cam.calib.resolution
+        cal = load_calibration(_cam_dir(cam), (h, w), pc, cam0=i == 0)
+        if not cal.identity:
+            log.info("cam%d photometric calibration: %s", i, cal.source)
+        cals.append(cal)
+    return StereoRig(data.cam0.calib, data.cam1.calib, *cals)
+
+
+def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
     """Register the photometric source of ``cfg.direct`` in ``pipe`` (before its first
     keyframe) and return the packet stage; direct mode (``hybrid=False``) also replaces
-    the landmark manager by ``FeaturelessLandmarks``."""
+    the landmark manager by ``FeaturelessLandmarks``. ``klt`` False: the packets arrive
+    with their KLT features (hybrid with the front end in its worker process)."""
     if pipe.est.initialized:
         raise RuntimeError("attach the direct source before the pipeline is initialized")
     if data.cam1 is None:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
-    source = PhotometricSource(pipe.est, StereoRig(data.cam0.calib, data.cam1.calib), cfg.direct)
+    source = PhotometricSource(pipe.est, _rig(data, cfg.direct.photometric), cfg.direct)
+    source.warm_up()
     pipe.est.sources.append(source)
     if not hybrid:
         pipe.est.lm = FeaturelessLandmarks(pipe.est)
@@ -139,4 +166,4 @@ def attach(pipe, data, cfg, hybrid: bool) -> DirectStage:
         register = getattr(sink, "add_direct_source", None)
         if register is not None:
             register(source.snapshot)
-    return DirectStage(pipe, data, cfg, hybrid, source)
+    return DirectStage(pipe, data, cfg, hybrid, source, klt)

@@ -1,36 +1,32 @@
 """Photometric points as a ``FactorSource`` of the estimator (``Estimator.sources``).
 
-Keys (next to the backend's X/V/B/E/D/L): ``A(k)`` = [a, b] of keyframe k's left image,
-``S(k)`` = [a, b] of its right image relative to the left, ``R(n)`` = inverse depth
-(1/m) of point n in its host keyframe's cam0 frame. The pose keys X(k) are T_w_b
-(body); the factors use the calibrated, fixed T_b_c of cam0 and T_c1_c0.
+One factor per host keyframe (``factors.photometric_host``): the host's points, their
+inverse depths eliminated inside the factor (refined at each linearization, Schur
+complement), observed in the next ``max_targets`` keyframes. Keys next to the
+backend's X/V/B: ``A(k)`` = [a, b] of keyframe k's left image (I ~ e^a I_0 + b). The
+pose keys X(k) are T_w_b (body); the factors use the calibrated, fixed T_b_c of cam0
+and T_c1_c0; the right image's affine relative to the left is estimated once per
+keyframe from the stereo matches (``vio.direct.keyframe.right_affine``) and held.
 
 Per keyframe k (``prepare_update``):
 
-0. every point in the graph is checked at the current estimate (the result of the
-   previous update): targets whose residual RMSE exceeds ``max_target_rmse`` or that
-   left the image are dropped from its factor (occlusion, a depth discontinuity: the
-   point stays, constrained by its other targets); a point with no target left or an
-   inverse depth out of range is removed (weak prior, marginalized at once). Checking
-   only the points rebuilt in the last update missed targets that went bad later and
-   removed whole points for one bad target;
-1. points whose host leaves the window are forgotten (their keys carry the host's
-   timestamp, so the smoother marginalizes them with it);
-2. TrackFrame (seed Algorithm 3) aligns keyframe k to the previous keyframe, starting
-   at the IMU prediction; its pose becomes the initial guess of X(k) when it
-   converged and agrees with the prediction (``PointsConfig.track_gate_*``), its
-   affine the guess of A(k); its RMSE is logged and kept in ``tracks`` (failure signal);
-3. every active point is checked in keyframe k at the initial guess (inside the image,
-   residual RMSE below ``max_target_rmse``); accepted ones gain target k and their one
-   factor (``factors.photometric_point.point_factor``: static stereo at the host plus all
-   temporal targets) is rebuilt; rejected or full ones become inactive and keep their
-   last factor until their host is marginalized;
-4. A(k), S(k) get weak priors, and new points hosted in k (epipolar depths, static
-   stereo term only) fill the active set up to ``max_active``, away from the
-   projections of the active points.
+1. hosts whose keyframe leaves the window are forgotten (the smoother marginalizes
+   their factor with X(host));
+2. TrackFrame (seed Algorithm 3) aligns keyframe k to the previous keyframe from the
+   IMU prediction; its pose becomes the initial guess of X(k) when it converged and
+   agrees with the prediction (``PointsConfig.track_gate_*``, off by default), its
+   affine the guess of A(k); its result is kept in ``tracks`` (failure signal);
+3. every host with fewer than ``max_targets`` targets whose live points are at least
+   ``min_visible`` inside keyframe k (at the initial guess) gains target k: its factor
+   is rebuilt (remove + add); the others stop gaining targets;
+4. A(k) gets a weak prior, and keyframe k becomes a host with its ``max_points``
+   best-spread candidates (epipolar depths; its factor appears with its first target).
 
-Keyframe 0 (and the restart keyframe after a solver recovery) only gets ``observe``:
-its keys and points are inserted at the next keyframe.
+Outliers (a (point, target) pair off the image or above ``outlier_rms``, a point whose
+stereo match fails or whose depth leaves the range) are switched off inside the
+factor at linearization (``factors.photometric_kernel``). Keyframe 0 (and the restart
+keyframe after a solver recovery) only gets ``observe``: its keys are inserted at the
+next keyframe.
 """
 
 from __future__ import annotations
@@ -43,35 +39,31 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth
-from factors.photometric import (HostPatch, PhotometricParams, make_host_patch, stereo_eval,
-                                 temporal_eval)
-from factors.photometric_point import StereoTerm, point_factor
+from factors.photometric import PhotometricParams, make_host_patch, temporal_eval
+from factors.photometric_host import HostParams, HostPoints, StereoHost, host_factor, host_residual_fn
+from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
-from vio.direct.trackframe import track_frame
+from vio.direct.trackframe import MotionPrior, track_frame
+from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
 X = gtsam.symbol_shorthand.X
 A = gtsam.symbol_shorthand.A
-S = gtsam.symbol_shorthand.S
-R = gtsam.symbol_shorthand.R
-_WEAK = gtsam.noiseModel.Isotropic.Sigma(1, 10.0)
 
 
 @dataclass(eq=False)
-class Point:
-    """One photometric point: host keyframe, host pixel ``uv`` (undistorted px), its
-    host patch, the target keyframes and the smoother indices of its factor."""
+class Host:
+    """One host keyframe ``k``: its points (``pts``: patches, inverse depths, masks),
+    host pixels ``uv`` (N, 2, undistorted px), targets (keyframe indices) and the
+    smoother index of its factor (None before the first target)."""
 
-    pid: int
-    key: int
-    host: int
+    k: int
     uv: np.ndarray
-    patch: HostPatch
+    pts: HostPoints
     targets: list
-    factor_indices: list
-    active: bool = True
-    dirty: bool = True
+    factor_index: int | None = None
+    open: bool = True
 
 
 @dataclass(frozen=True)
@@ -105,37 +97,53 @@ class PointSnapshot:
     inv_depth: np.ndarray | None = None
 
 
-def _stack(patches: list[HostPatch]) -> HostPatch:
-    return HostPatch(*(np.concatenate([getattr(p, f) for p in patches])
-                       for f in ("uv", "bearing", "intensity", "grad_sq", "valid")))
-
-
 class PhotometricSource:
     """The direct-mode factor source (module docstring); ``rig`` the stereo geometry."""
 
-    key_dims = {"a": 2, "s": 2, "r": 1}
+    key_dims = {"a": 2}
 
     def __init__(self, est, rig: StereoRig, cfg: DirectConfig) -> None:
         self.est, self.rig, self.cfg = est, rig, cfg
         pc = cfg.points
-        self.params = PhotometricParams(pc.sigma_I, pc.grad_c, pc.huber_k)
-        self.stereo_params = PhotometricParams(pc.sigma_I, pc.grad_c, pc.huber_k, pc.stereo_weight)
+        self.params = HostParams(PhotometricParams(pc.sigma_I, pc.grad_c, pc.huber_k),
+                                 pc.stereo_weight, pc.outlier_rms, pc.refine_iters,
+                                 1.0 / pc.max_depth_m, 1.0 / pc.min_depth_m, pc.damping)
         self.kfs: dict[int, KeyframeData] = {}
-        self.points: dict[int, Point] = {}
+        self.hosts: dict[int, Host] = {}
         self.tracks: list[TrackRecord] = []
         self.health = FactorHealth()
-        self.n_points_total = 0
         self.n_factors_built = 0
-        self._pending: list[tuple[Point, int]] = []
-        self.n_outliers = 0
+        self._pending: list[tuple[Host, int]] = []
         self.last_stats: dict = {}
         a, b = pc.affine_sigma
         self._ab_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, b]))
 
+    def warm_up(self) -> None:
+        """Load (or compile) the Numba kernels of keyframe building, TrackFrame and the
+        host factor now, on a noise image pair of the cameras' size: their first calls
+        otherwise stall the first keyframes after initialization (~1.5 s to compile on
+        a fresh install, ~0.3 s to load from Numba's cache)."""
+        import cv2
+
+        w, h = self.rig.cam0.resolution
+        img = cv2.blur(np.random.default_rng(0).uniform(20, 230, (h, w)), (5, 5))   # smooth texture
+        kd = build_keyframe(-1, 0, img, img, self.rig, self.cfg)
+        if len(kd.uv) == 0:
+            return
+        track_frame(kd.reference(np.zeros(2), self.cfg), kd.image, gtsam.Pose3(), np.zeros(2),
+                    self.cfg.track, MotionPrior(gtsam.Pose3(), 1e-3, 1e-3))
+        n = min(len(kd.uv), 8)
+        pts = HostPoints.create(make_host_patch(kd.left, kd.uv[:n], self.rig.K0), kd.idepth[:n],
+                                self.cfg.points.grad_c, self.cfg.points.max_targets)
+        stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
+        fn = host_residual_fn(pts, [kd.left._stack], self.rig.K0, self.rig.T_b_c, self.params, stereo)
+        fn([gtsam.Pose3(), np.zeros(2), gtsam.Pose3(), np.zeros(2)])
+
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
-        """Build keyframe k's data from ``frame.images`` (left, right)."""
-        imgs = getattr(frame, "images", ())
+        """Build keyframe k's data from ``frame.images`` (left, right), read from
+        ``frame.image_files`` when the packet carries none."""
+        imgs = getattr(frame, "images", ()) or tuple(read_image(p) for p in getattr(frame, "image_files", ())[:2])
         if len(imgs) < 2:
             raise ValueError(f"direct mode: keyframe {k} packet has no stereo images")
         self.kfs[k] = build_keyframe(k, frame.t_ns, imgs[0], imgs[1], self.rig, self.cfg)
@@ -143,9 +151,8 @@ class PhotometricSource:
     def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
                        g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> list[int]:
         removals: list[int] = []
-        self.last_stats = {"k": k, "extended": 0, "rejected": 0, "new": 0, "outliers": 0}
+        self.last_stats = {"k": k, "extended": 0, "closed": 0}
         self._forget(set(leaving))
-        self._remove_outliers(g, stamps, removals)
         kd = self.kfs.get(k)
         if kd is None:
             return removals
@@ -153,29 +160,37 @@ class PhotometricSource:
         for f in sorted(self.kfs):     # keyframe 0 / restart keyframe: keys not yet inserted
             fd = self.kfs[f]
             if f < k and not fd.in_graph and vals.exists(X(f)):
-                self._insert_keyframe(fd, vals.atPose3(X(f)), np.zeros(2), g, v, stamps, None)
+                self._insert_keyframe(fd, np.zeros(2), g, v, stamps)
         ab_k = self._track(k, kd, pred, v)
         T_k = v.atPose3(X(k))
-        occupied = self._extend_points(k, T_k, ab_k, v)
-        self._insert_keyframe(kd, T_k, ab_k, g, v, stamps, occupied)
-        for p in self.points.values():    # (re)build the factors of new / extended points
-            if p.dirty:
-                removals.extend(p.factor_indices)
-                p.factor_indices = []
-                self._add_factor(p, g)
-                p.dirty = False
+        for h in sorted(self.hosts):
+            host = self.hosts[h]
+            if not host.open:
+                continue
+            if self._visible_fraction(host, T_k) < self.cfg.points.min_visible:
+                host.open = False
+                self.last_stats["closed"] += 1
+                continue
+            host.targets.append(k)
+            host.open = len(host.targets) < self.cfg.points.max_targets
+            if host.factor_index is not None:
+                removals.append(host.factor_index)
+                host.factor_index = None
+            self._add_factor(host, g)
+            self.last_stats["extended"] += 1
+        self._insert_keyframe(kd, ab_k, g, v, stamps)
         return removals
 
     def record_factor_indices(self, indices) -> None:
         idx = list(indices)
-        for p, pos in self._pending:
-            p.factor_indices.append(int(idx[pos]))
+        for host, pos in self._pending:
+            host.factor_index = int(idx[pos])
         self._pending = []
 
     def reset(self) -> None:
-        """After a solver restart: forget points and keys; the restart keyframe's images
+        """After a solver restart: forget hosts and keys; the restart keyframe's images
         are kept and its keys inserted at the next keyframe."""
-        self.points = {}
+        self.hosts = {}
         self._pending = []
         kd = self.kfs.get(self.est.k)
         self.kfs = {} if kd is None else {kd.k: kd}
@@ -183,65 +198,10 @@ class PhotometricSource:
             kd.in_graph = False
 
     # ------------------------------------------------------------ internals
-    def _target_rmse(self, pts: list[Point], h: int, j: int, v: gtsam.Values | None = None,
-                     T_j: gtsam.Pose3 | None = None, ab_j: np.ndarray | None = None):
-        """Residual RMSE (N,) (intensity units), inside fraction (N,) and the evaluation
-        of host ``h``'s points ``pts`` in keyframe ``j``, at ``v`` (falling back on the
-        estimate) or, when given, at ``T_j`` / ``ab_j`` for keyframe j."""
-        rho = np.array([self._value(v, p.key)[0] for p in pts])
-        ev = temporal_eval(self._value(v, X(h), True), self._value(v, X(j), True) if T_j is None else T_j,
-                           rho, self._value(v, A(h)), self._value(v, A(j)) if ab_j is None else ab_j,
-                           _stack([p.patch for p in pts]), self.kfs[j].left, self.rig.K0, self.rig.T_b_c)
-        n_in = ev.valid.sum(1)
-        return np.sqrt((ev.r ** 2).sum(1) / np.maximum(n_in, 1)), n_in / ev.valid.shape[1], ev
-
-    def _remove_outliers(self, g, stamps, removals: list[int]) -> None:
-        """Check every point in the graph at the current estimate (DSO practice: the
-        residuals after the update). A target whose RMSE exceeds ``max_target_rmse`` or
-        that left the image (occlusion, depth discontinuity, misfit) is dropped: the
-        point's factor is rebuilt without it and the point stops gaining targets. A
-        point with an inverse depth outside the depth range, or with no target left,
-        loses its factor and its key is marginalized with a weak prior (like
-        ``LandmarkManager._retire_key``)."""
-        vals, pc = self.est.values, self.cfg.points
-        pts = [p for p in self.points.values()
-               if p.factor_indices and vals.exists(p.key) and vals.exists(X(p.host))]
-        bad = set()
-        for p in pts:
-            rho = float(vals.atVector(p.key)[0])
-            if not 1.0 / pc.max_depth_m <= rho <= 1.0 / pc.min_depth_m:
-                bad.add(p.pid)
-        groups: dict[tuple[int, int], list[Point]] = {}
-        for p in pts:
-            for j in p.targets:
-                if p.pid not in bad and vals.exists(X(j)) and j in self.kfs:
-                    groups.setdefault((p.host, j), []).append(p)
-        dropped = 0
-        for (h, j), grp in groups.items():
-            rmse, inside, _ = self._target_rmse(grp, h, j)
-            for p, o in zip(grp, (rmse > pc.max_target_rmse) | (inside < 0.5)):
-                if o:
-                    p.targets.remove(j)
-                    p.active, p.dirty = False, True
-                    dropped += 1
-        bad.update(p.pid for p in pts if p.dirty and not p.targets)
-        for pid in bad:
-            p = self.points.pop(pid)
-            removals.extend(p.factor_indices)
-            p.factor_indices = []
-            g.add(gtsam.PriorFactorVector(p.key, np.asarray(vals.atVector(p.key), float), _WEAK))
-            stamps[p.key] = 0.0
-        self.n_outliers += len(bad)
-        self.last_stats.update(outliers=len(bad), dropped=dropped)
-
     def _forget(self, leave: set[int]) -> None:
-        self.points = {i: p for i, p in self.points.items() if p.host not in leave}
         for f in leave:
+            self.hosts.pop(f, None)
             self.kfs.pop(f, None)
-
-    def _value(self, v: gtsam.Values | None, key: int, pose: bool = False):
-        src = v if v is not None and v.exists(key) else self.est.values
-        return src.atPose3(key) if pose else np.asarray(src.atVector(key), float)
 
     def _latest_in_graph(self, k: int) -> KeyframeData | None:
         vals = self.est.values
@@ -255,13 +215,19 @@ class PhotometricSource:
             return np.zeros(2)
         vals, T_b_c, pc = self.est.values, self.rig.T_b_c, self.cfg.points
         ab_p = np.asarray(vals.atVector(A(prev.k)), float)
+        if not self.cfg.track.enabled:
+            return ab_p
         T_w_cp = vals.atPose3(X(prev.k)).compose(T_b_c)
         T_pred = v.atPose3(X(k))
+        T_init = T_w_cp.between(T_pred.compose(T_b_c))
         t0 = time.perf_counter()
-        res = track_frame(prev.reference(ab_p, self.cfg), kd.image,
-                          T_w_cp.between(T_pred.compose(T_b_c)), ab_p, self.cfg.track)
+        res = track_frame(prev.reference(ab_p, self.cfg), kd.image, T_init, ab_p, self.cfg.track,
+                          self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9))
         ms = (time.perf_counter() - t0) * 1e3
-        T_tr = T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse())
+        # re-orthonormalized: T_tr = T_w_cp (T_w_cp^-1 T_pred T_b_c) ... composes the
+        # previous keyframe's rotation three times, so its rounding error tripled at every
+        # keyframe (1e-16 -> 0.5% shear by keyframe 28 of real MH_01, then divergence)
+        T_tr = pose_from_matrix(T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse()).matrix())
         d = T_pred.between(T_tr)
         dist, ang = float(np.linalg.norm(d.translation())), float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
@@ -272,84 +238,74 @@ class PhotometricSource:
             log.warning("TrackFrame failed at keyframe %d: rmse %.1f (IMU prediction kept)", k, res.rmse)
         return np.array([res.a, res.b]) if res.ok else ab_p
 
-    def _extend_points(self, k: int, T_k: gtsam.Pose3, ab_k: np.ndarray, v) -> np.ndarray:
-        """Add target k to the active points that pass the checks; (M, 2) target pixels."""
-        pc = self.cfg.points
-        by_host: dict[int, list[Point]] = {}
-        for p in self.points.values():
-            if p.active:
-                by_host.setdefault(p.host, []).append(p)
-        hits = []
-        for h, pts in by_host.items():
-            rmse, inside, ev = self._target_rmse(pts, h, k, v, T_k, ab_k)
-            ok = (inside >= pc.min_inside) & (rmse <= pc.max_target_rmse)
-            self.last_stats["rejected"] += int((~ok).sum())
-            self.last_stats["extended"] += int(ok.sum())
-            for p, good, uv in zip(pts, ok, ev.uv[:, 4]):
-                if not good:
-                    p.active = False
-                    continue
-                p.targets.append(k)
-                p.dirty = True
-                p.active = len(p.targets) < pc.max_targets
-                hits.append(uv)
-        return np.array(hits).reshape(-1, 2)
+    def _motion_prior(self, T_init: gtsam.Pose3, dt: float) -> MotionPrior | None:
+        """The IMU prediction ``T_init`` (camera of the new keyframe in the previous one's,
+        ``dt`` s apart) as TrackFrame's prior: sigmas from the preintegration covariance
+        (rotation, position blocks) and the configured floors (``TrackConfig``)."""
+        tc, pim = self.cfg.track, self.est.pim
+        if not tc.imu_prior or pim is None or pim.deltaTij() <= 0:
+            return None
+        cov = np.asarray(pim.preintMeasCov())
+        s_rot = max(tc.prior_rot_sigma, float(np.sqrt(np.trace(cov[:3, :3]) / 3.0)))
+        s_tr = float(np.hypot(tc.prior_trans_sigma, tc.prior_vel_sigma * dt))
+        s_tr = max(s_tr, float(np.sqrt(np.trace(cov[3:6, 3:6]) / 3.0)))
+        return MotionPrior(T_init, s_rot, s_tr)
 
-    def _add_factor(self, p: Point, g: gtsam.NonlinearFactorGraph) -> None:
-        h = self.kfs[p.host]
-        keys = [X(p.host), p.key, A(p.host), S(p.host)]
-        for j in p.targets:
+    def _project(self, host: Host, T_w_bj: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray]:
+        """Host centre pixels of the live points projected into a frame at ``T_w_bj``:
+        (N, 2) pixels (undistorted cam0) and an (N,) mask in front of the camera."""
+        T = T_w_bj.compose(self.rig.T_b_c).between(self.est.values.atPose3(X(host.k)).compose(self.rig.T_b_c))
+        q = self.rig.K0.unproject(host.uv) @ T.rotation().matrix().T + host.pts.rho[:, None] * T.translation()
+        front = q[:, 2] > 1e-3 * np.maximum(host.pts.rho, 1e-6)
+        return self.rig.K0.project(np.where(front[:, None], q, 1.0)), front & host.pts.alive
+
+    def _visible_fraction(self, host: Host, T_w_bj: gtsam.Pose3) -> float:
+        uv, ok = self._project(host, T_w_bj)
+        w, h = self.rig.cam0.resolution
+        b = 4.0
+        ok &= (uv[:, 0] >= b) & (uv[:, 0] < w - b) & (uv[:, 1] >= b) & (uv[:, 1] < h - b)
+        return float(ok.sum()) / max(len(host.uv), 1)
+
+    def _add_factor(self, host: Host, g: gtsam.NonlinearFactorGraph) -> None:
+        kd = self.kfs[host.k]
+        keys = [X(host.k), A(host.k)]
+        for j in host.targets:
             keys += [X(j), A(j)]
-        stereo = StereoTerm(h.right, self.rig.K1, self.rig.T_c1_c0, self.stereo_params)
-        self._pending.append((p, int(g.size())))
-        g.add(point_factor(keys, p.patch, [self.kfs[j].left for j in p.targets], self.rig.K0,
-                           self.rig.T_b_c, self.params, stereo, self.health))
+        stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
+        self._pending.append((host, int(g.size())))
+        g.add(host_factor(keys, host.pts, [self.kfs[j].left._stack for j in host.targets],
+                          self.rig.K0, self.rig.T_b_c, self.params, stereo, self.health))
         self.n_factors_built += 1
 
-    def _insert_keyframe(self, kd: KeyframeData, T_w_b: gtsam.Pose3, ab: np.ndarray, g, v, stamps,
-                         occupied: np.ndarray | None) -> None:
-        """A(k), S(k) with their priors, then new points hosted in kd."""
-        t = kd.t_ns * 1e-9
+    def _insert_keyframe(self, kd: KeyframeData, ab: np.ndarray, g, v, stamps) -> None:
+        """A(k) with its prior, then keyframe k as a host of its candidate points."""
         v.insert(A(kd.k), np.asarray(ab, float))
-        v.insert(S(kd.k), kd.ab_right.copy())
         g.add(gtsam.PriorFactorVector(A(kd.k), np.zeros(2), self._ab_noise))
-        g.add(gtsam.PriorFactorVector(S(kd.k), kd.ab_right.copy(), self._ab_noise))
-        stamps[A(kd.k)] = stamps[S(kd.k)] = t
+        stamps[A(kd.k)] = kd.t_ns * 1e-9
         kd.in_graph = True
-        free = self.cfg.points.max_active - sum(p.active for p in self.points.values())
-        idx = self._new_point_indices(kd, occupied, free)
-        self.last_stats["new"] += len(idx)
-        patches = make_host_patch(kd.left, kd.uv[idx], self.rig.K0)
-        for j, i in enumerate(idx):
-            self.n_points_total += 1
-            p = Point(self.n_points_total, R(self.n_points_total), kd.k, kd.uv[i].copy(),
-                      patches.subset(np.array([j])), [], [])
-            v.insert(p.key, np.array([kd.idepth[i]]))
-            stamps[p.key] = t
-            self.points[p.pid] = p
-
-    def _new_point_indices(self, kd: KeyframeData, occupied: np.ndarray | None, free: int) -> np.ndarray:
-        """Candidates at least ``min_spacing_px`` (grid cells) from the occupied pixels,
-        evenly thinned to ``free``."""
-        if free <= 0 or len(kd.uv) == 0:
-            return np.zeros(0, int)
-        cell = max(self.cfg.points.min_spacing_px, 1.0)
-        keep = np.ones(len(kd.uv), bool)
-        if occupied is not None and len(occupied):
-            occ = {(int(a), int(b)) for a, b in np.floor(occupied / cell)}
-            cells = np.floor(kd.uv / cell).astype(int)
-            keep = np.array([(a, b) not in occ for a, b in cells])
-        idx = np.flatnonzero(keep)
-        if len(idx) > free:
-            idx = idx[np.linspace(0, len(idx) - 1, free).round().astype(int)]
-        return idx
+        idx = _spread(kd.uv, self.cfg.points.max_points)
+        if len(idx) == 0:
+            return
+        patch = make_host_patch(kd.left, kd.uv[idx], self.rig.K0)
+        pts = HostPoints.create(patch, kd.idepth[idx], self.cfg.points.grad_c, self.cfg.points.max_targets)
+        self.hosts[kd.k] = Host(kd.k, kd.uv[idx].copy(), pts, [])
 
     # ------------------------------------------------------------- outputs
     def n_active(self) -> int:
-        return sum(p.active for p in self.points.values())
+        return int(sum(h.pts.alive.sum() for h in self.hosts.values()))
+
+    def live_points(self) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+        """(host k, host pixels (N, 2), inverse depths (N,), point indices (N,)) of the
+        live points of every host whose pose is in the estimate."""
+        out = []
+        for h, host in self.hosts.items():
+            if self.est.values.exists(X(h)):
+                i = np.flatnonzero(host.pts.alive)
+                out.append((h, host.uv[i], host.pts.rho[i], i))
+        return out
 
     def snapshot(self) -> PointSnapshot | None:
-        """The points seen in the newest keyframe at the current estimate (for display)."""
+        """The live points seen in the newest keyframe at the current estimate (display)."""
         vals = self.est.values
         ks = [f for f, fd in self.kfs.items() if fd.in_graph and vals.exists(A(f))]
         if not ks:
@@ -357,30 +313,31 @@ class PhotometricSource:
         k = max(ks)
         kd = self.kfs[k]
         uv, rmse, hosted, inv_depth = [], [], [], []
-        groups: dict[int, list[Point]] = {}
-        for p in self.points.values():
-            if not vals.exists(p.key):
-                continue
-            if p.host == k:
-                rho_p = vals.atVector(p.key)
-                ev = stereo_eval(rho_p, vals.atVector(S(k)), p.patch, kd.right,
-                                 self.rig.K1, self.rig.T_c1_c0)
-                uv.append(p.uv), hosted.append(True), inv_depth.append(float(rho_p[0]))
-                rmse.append(np.sqrt(np.mean(ev.r[ev.valid] ** 2)) if ev.valid.any() else np.nan)
-            elif k in p.targets:
-                groups.setdefault(p.host, []).append(p)
         T_ck_w = vals.atPose3(X(k)).compose(self.rig.T_b_c).inverse()
-        for h, pts in groups.items():
-            rho = np.array([vals.atVector(p.key)[0] for p in pts])
-            patch = _stack([p.patch for p in pts])
-            ev = temporal_eval(vals.atPose3(X(h)), vals.atPose3(X(k)), rho, vals.atVector(A(h)),
-                               vals.atVector(A(k)), patch, kd.left, self.rig.K0, self.rig.T_b_c)
-            n = np.maximum(ev.valid.sum(1), 1)
-            uv.extend(ev.uv[:, 4]), hosted.extend([False] * len(pts))
-            rmse.extend(np.sqrt((ev.r ** 2).sum(1) / n))
-            T_ck_ch = T_ck_w.compose(vals.atPose3(X(h)).compose(self.rig.T_b_c)).matrix()
-            p_ck = (patch.bearing[:, 4] / rho[:, None]) @ T_ck_ch[:3, :3].T + T_ck_ch[:3, 3]
-            inv_depth.extend(1.0 / p_ck[:, 2])
+        for h, host in self.hosts.items():
+            i = np.flatnonzero(host.pts.alive)
+            if h == k:
+                uv.extend(host.uv[i]), hosted.extend([True] * len(i)), rmse.extend([np.nan] * len(i))
+                inv_depth.extend(host.pts.rho[i])
+            elif k in host.targets and len(i):
+                ev = temporal_eval(vals.atPose3(X(h)), vals.atPose3(X(k)), host.pts.rho[i],
+                                   vals.atVector(A(h)), vals.atVector(A(k)), host.pts.patch.subset(i),
+                                   kd.left, self.rig.K0, self.rig.T_b_c)
+                n = np.maximum(ev.valid.sum(1), 1)
+                uv.extend(ev.uv[:, 4]), hosted.extend([False] * len(i))
+                rmse.extend(np.sqrt((ev.r ** 2).sum(1) / n))
+                T_ck_ch = T_ck_w.compose(vals.atPose3(X(h)).compose(self.rig.T_b_c)).matrix()
+                bear = host.pts.patch.subset(i).bearing[:, 4]
+                p_ck = (bear / host.pts.rho[i][:, None]) @ T_ck_ch[:3, :3].T + T_ck_ch[:3, 3]
+                inv_depth.extend(1.0 / p_ck[:, 2])
         uvn = self.rig.K0.unproject(np.array(uv).reshape(-1, 2))[:, :2]
         return PointSnapshot(k, kd.t_ns, uvn, np.array(rmse, float), np.array(hosted, bool),
                              np.array(inv_depth, float))
+
+
+def _spread(uv: np.ndarray, n: int) -> np.ndarray:
+    """Indices of at most ``n`` of the candidates ``uv`` (N, 2), evenly thinned in the
+    selection order (which is spatially spread)."""
+    if len(uv) <= n:
+        return np.arange(len(uv))
+    return np.linspace(0, len(uv) - 1, n).round().astype(int)

@@ -1,0 +1,71 @@
+"""Numba kernel of TrackFrame's residual rows (``vio.direct.trackframe``): the temporal
+photometric residual of keyframe points in a new frame, its whitened rows and their
+Jacobian with respect to the new frame's pose and affine brightness, in one pass.
+
+Same arithmetic as ``factors.photometric.temporal_eval`` with the host at the identity
+and T_b_c = I (the keyframe camera is the reference) followed by ``sqrt_weights``:
+
+    q = R f + rho t  ((R, t) = T_kf_new^-1, keyframe camera -> new camera),  r = I_new(pi(q)) - b_j - s (I_ref - b_i),  s = e^(a_j - a_i),
+    W = c^2 / (c^2 + |grad I_ref|^2) / (2 sigma_I^2 + (dr/drho)^2 V),
+    row = sqrt(W) [r ; (g x q, -rho g) ; -s (I_ref - b_i), -1]     (g = dr/dq),
+
+the pose columns along ``T Exp(xi)``, xi = [omega, v] (GTSAM). Rows of pattern pixels
+that are invalid (behind the camera, outside the valid image area, host pixel
+invalid) get the constant ``oob`` residual and a zero Jacobian. The numpy path built
+~25 temporary arrays per evaluation (``np.stack`` alone was 8% of direct mode's time).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from factors.photometric_kernel import MIN_Z, _njit, sample
+
+
+@_njit
+def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b_j, c2, two_s2, oob,
+               r_w, J, r_raw, valid):
+    """Fill the whitened residuals ``r_w`` (N P,), Jacobian ``J`` (N P, 8), the raw
+    residuals ``r_raw`` (N, P) and ``valid`` (N, P). ``s`` the relative gain e^(a_j - a_i),
+    ``b_i``, ``b_j`` the offsets; ``var`` (N,) inverse-depth variances (zeros: no V term)."""
+    N, P = Ii.shape
+    smp = np.empty(3)
+    for p in range(N):
+        rp = rho[p]
+        for k in range(P):
+            row = p * P + k
+            valid[p, k] = False
+            r_raw[p, k] = 0.0
+            r_w[row] = oob
+            for c in range(8):
+                J[row, c] = 0.0
+            if not hvalid[p, k]:
+                continue
+            f0, f1, f2 = bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2]
+            q0 = R[0, 0] * f0 + R[0, 1] * f1 + R[0, 2] * f2 + rp * t[0]
+            q1 = R[1, 0] * f0 + R[1, 1] * f1 + R[1, 2] * f2 + rp * t[1]
+            q2 = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 + rp * t[2]
+            if q2 <= MIN_Z:
+                continue
+            if not sample(stack, K[0] * q0 / q2 + K[2], K[1] * q1 / q2 + K[3], smp):
+                continue
+            valid[p, k] = True
+            gu = smp[1] * K[0] / q2
+            gv = smp[2] * K[1] / q2
+            gz = -(gu * q0 + gv * q1) / q2
+            h = s * (Ii[p, k] - b_i)
+            r = smp[0] - b_j - h
+            r_raw[p, k] = r
+            drho = gu * t[0] + gv * t[1] + gz * t[2]
+            sw = math.sqrt(c2 / (c2 + grad_sq[p, k]) / (two_s2 + drho * drho * var[p]))
+            r_w[row] = sw * r
+            J[row, 0] = sw * (gv * q2 - gz * q1)
+            J[row, 1] = sw * (gz * q0 - gu * q2)
+            J[row, 2] = sw * (gu * q1 - gv * q0)
+            J[row, 3] = -sw * rp * gu
+            J[row, 4] = -sw * rp * gv
+            J[row, 5] = -sw * rp * gz
+            J[row, 6] = -sw * h
+            J[row, 7] = -sw
