@@ -9,6 +9,12 @@ Mode ``features`` (feature tracks in ``cam0/features.csv``):
   IMU and ground truth, with a known td (5 ms) and a fixed per-sequence seed, plus
   its td = 0 twin (same seed, same excerpt) for the differential td error.
 
+Mode ``variants`` (run as ``features``): the generator-variant table, so that no single
+generator defines the td and ATE figures. Each named variant of ``vio.sim.tracks.VARIANTS``
+other than ours (``boxwall``: issue 20's generator) on the MH_03 (at takeoff, 12 s) and
+V1_03 excerpts with true td in ``VARIANT_TD_S`` (-20, 0, +12, +25 ms), seeds never used in
+development; each td != 0 set's ``twin`` is its td = 0 run (the ATE ratio's reference).
+
 Image modes: sequences rendered by ``vio.sim.simulate`` with fixed seeds never used in
 development (the lead developed on seed 0, the direct mode on seeds 3 and 5), 20 s at
 752x480 (quick: 8 s): stereo with td = 10 ms (seed 11), stereo with a 30 us/row
@@ -126,6 +132,34 @@ def generated_spec(seq: str, td_s: float, seed: int, start_s: float, duration_s:
                        group=group or base)
 
 
+VARIANT_TD_S = (-0.020, 0.0, 0.012, 0.025)
+VARIANT_SEQUENCES = ("MH_03_medium", "V1_03_difficult")
+
+
+def variant_datasets(quick: bool) -> list[DatasetSpec]:
+    """The generator-variant table: every non-default ``VARIANTS`` entry x
+    ``VARIANT_SEQUENCES`` x ``VARIANT_TD_S``, 60-s excerpts (quick: 20 s, td 0 and +25 ms
+    on MH_03 only)."""
+    from vio.sim.tracks import VARIANTS
+    out = []
+    seqs = VARIANT_SEQUENCES[:1] if quick else VARIANT_SEQUENCES
+    tds = (0.0, 0.025) if quick else VARIANT_TD_S
+    for vi, (variant, gen) in enumerate(sorted((k, v) for k, v in VARIANTS.items() if k != "ours")):
+        for seq in seqs:
+            seed = 300 + 10 * vi + SEQUENCES.index(seq)
+            for td in tds:
+                s = generated_spec(seq, td, seed, START_S.get(seq, 0.0), 20.0 if quick else 60.0,
+                                   group=f"{variant}:{seq}", **gen)
+                out.append(dataclasses.replace(s, name=f"{variant}:{s.name}", mode="variants",
+                                               twin=f"{variant}:{s.twin}" if s.twin else None))
+    return out
+
+
+def run_mode(mode: str) -> str:
+    """The pipeline mode a registry mode runs in (``variants`` are feature tracks)."""
+    return "features" if mode == "variants" else mode
+
+
 def feature_datasets(quick: bool) -> list[DatasetSpec]:
     """Real V1_01 plus generated excerpts (td 5 ms and their td 0 twins)."""
     specs = [DatasetSpec("V1_01_real", "features", V1_01, group="V1_01_real")]
@@ -193,6 +227,7 @@ def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
 
 MODES: dict[str, Mode] = {
     "features": Mode("features", feature_datasets),
+    "variants": Mode("variants", variant_datasets),
     "stereo": Mode("stereo", partial(image_datasets, "stereo")),
     "mono": Mode("mono", partial(image_datasets, "mono")),
     "direct": Mode("direct", partial(image_datasets, "direct")),

@@ -113,7 +113,7 @@ class Estimator:
         self.k = -1
         self.kf_t: dict[int, int] = {}
         self.still_kf: set[int] = set()   # keyframes the pipeline flagged still (no td term)
-        self.rates = KeyframeRates()
+        self.rates = KeyframeRates(smooth_s=cfg.vision.td_rate_smooth_s)
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
@@ -141,6 +141,8 @@ class Estimator:
         """Start the window at ``state`` (keyframe 0)."""
         self._restart(0, state, self.cam.T_b_c if T_b_c is None else T_b_c,
                       self.td0 if td_s is None else td_s, None)
+        if state.method == "static":    # a still start: its images carry no timing information
+            self.still_kf.add(0)
 
     def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
                  pose_sigmas: np.ndarray | None, init: InitConfig | None = None) -> None:
@@ -232,8 +234,9 @@ class Estimator:
         stamps = {X(k1): t, V(k1): t, B(k1): t, graph.EXTRINSIC: t, graph.TD: t}
         self.k = k1
         self.kf_t[k1] = t_ns
+        td_obs = self.td_obs(frame)
         if gyro is not None:
-            self.rates.add_keyframe(k1, t_ns, gyro)
+            self.rates.add_keyframe(k1, t_ns, gyro, td_obs)
         self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
@@ -342,6 +345,16 @@ class Estimator:
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
         return self.values.atPose3(graph.EXTRINSIC)
+
+    def td_obs(self, frame: Any) -> float:
+        """The part of the td variable the time of ``frame`` (a ``FramePacket``: ``t_ns``
+        = stamp + the sync layer's offset for it) already holds: that offset minus
+        ``td_applied_s`` (s); 0 for anything else. Non-zero once the sync layer applies
+        the fed-back estimate (``CalibConfig.td_feedback_s``)."""
+        t, stamp = getattr(frame, "t_ns", None), getattr(frame, "stamp_ns", None)
+        if t is None or stamp is None:
+            return 0.0
+        return (int(t) - int(stamp)) * 1e-9 - self.td_applied_s
 
     def td(self) -> float:
         """Total camera-to-IMU offset (s): the sync layer's constant plus the estimate."""
