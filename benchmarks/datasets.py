@@ -10,7 +10,7 @@ Mode ``features`` (feature tracks in ``cam0/features.csv``):
   its td = 0 twin (same seed, same excerpt) for the differential td error.
 
 Mode ``variants`` (run as ``features``): the generator-variant table, so that no single
-generator defines the td and ATE figures. Each named variant of ``vio.sim.tracks.VARIANTS``
+generator defines the td and ATE figures. Each named variant of ``vio.sim.variants.VARIANTS``
 other than ours (``boxwall``: issue 20's generator) on the MH_03 (at takeoff, 12 s) and
 V1_03 excerpts with true td in ``VARIANT_TD_S`` (-20, 0, +12, +25 ms), seeds never used in
 development; each td != 0 set's ``twin`` is its td = 0 run (the ATE ratio's reference).
@@ -140,7 +140,7 @@ def variant_datasets(quick: bool) -> list[DatasetSpec]:
     """The generator-variant table: every non-default ``VARIANTS`` entry x
     ``VARIANT_SEQUENCES`` x ``VARIANT_TD_S``, 60-s excerpts (quick: 20 s, td 0 and +25 ms
     on MH_03 only)."""
-    from vio.sim.tracks import VARIANTS
+    from vio.sim.variants import VARIANTS
     out = []
     seqs = VARIANT_SEQUENCES[:1] if quick else VARIANT_SEQUENCES
     tds = (0.0, 0.025) if quick else VARIANT_TD_S

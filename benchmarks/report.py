@@ -84,7 +84,7 @@ def variant_table(acc: dict) -> list[str]:
         rows.append([r["dataset"], _f(r.get("td_true_ms"), 1), _f(o.get("td_ms"), 2), _f(o.get("td_err_ms"), 2),
                      _f(o.get("ate_rmse")), _f(o.get("ate_pct"), 3), _f(ratio, 2)])
     out = ["### Generator variants (feature tracks from generators we did not tune on)", "",
-           "Generators: `vio.sim.tracks.VARIANTS` (`boxwall`: landmarks on the walls of a box 2.5 m beyond "
+           "Generators: `vio.sim.variants.VARIANTS` (`boxwall`: landmarks on the walls of a box 2.5 m beyond "
            "the flight envelope, 60 random tracks per frame, 3% loss per frame, 1% outliers up to 45 px, "
            "raw ground truth). Targets: td within 0.5 ms, ATE within 1.25x of the td = 0 twin, under 0.2% "
            "of the path.", ""]

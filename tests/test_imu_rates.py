@@ -35,7 +35,7 @@ def test_mean_gyro_is_the_integral_of_the_interpolated_readings():
 
 @pytest.mark.parametrize("td_ms", [5.0, -7.0, 0.0])
 def test_keyframe_rate_is_the_mean_over_the_offset_interval(td_ms):
-    r = KeyframeRates(margin_s=0.1, smooth_s=0.0)
+    r = KeyframeRates(margin_s=0.1)
     full = _imu(0, 200)
     r.add_imu(_imu(0, 100))
     w_at = full.gyro[20]                           # reading at the 100-ms keyframe
@@ -54,7 +54,7 @@ def test_keyframe_rate_is_the_mean_over_the_offset_interval(td_ms):
 
 
 def test_keyframe_rate_cut_at_the_history_and_history_trimmed():
-    r = KeyframeRates(margin_s=0.02, smooth_s=0.0)
+    r = KeyframeRates(margin_s=0.02)
     full = _imu(0, 300)
     r.add_imu(_imu(0, 100))
     r.add_keyframe(0, 100 * MS, full.gyro[20])
@@ -69,19 +69,14 @@ def test_keyframe_rate_cut_at_the_history_and_history_trimmed():
     np.testing.assert_array_equal(r.rate(2, 0.005), [1.0, 2.0, 3.0])
 
 
-def test_keyframe_rate_widened_symmetrically_and_offset_by_td_obs():
-    """smooth_s widens [t_k, t_k + td - td_obs] by the same amount on both sides (the
-    midpoint stays), only as far as the history reaches on both sides."""
+def test_keyframe_rate_offset_by_td_obs():
+    """A keyframe whose time already holds ``td_obs`` of the offset (the sync layer's fed-back
+    estimate): its rate is the mean over [t_k, t_k + td - td_obs] (or the reverse)."""
     full = _imu(0, 400)
-    r = KeyframeRates(margin_s=0.15, smooth_s=0.01)
-    r.add_keyframe(1, 200 * MS, full.gyro[40])
+    r = KeyframeRates(margin_s=0.15)
     r.add_imu(full)
-    np.testing.assert_allclose(r.rate(1, 0.004), mean_gyro(full, 190 * MS, 214 * MS), atol=1e-12)
-    np.testing.assert_allclose(r.rate(1, 0.0), mean_gyro(full, 190 * MS, 210 * MS), atol=1e-12)
-    # a keyframe whose time already holds 3 ms of td: the interval is td - 3 ms long
     r.add_keyframe(2, 300 * MS, full.gyro[60], td_obs_s=0.003)
-    np.testing.assert_allclose(r.rate(2, 0.010), mean_gyro(full, 290 * MS, 317 * MS), atol=1e-12)
-    np.testing.assert_allclose(r.rate(2, -0.002), mean_gyro(full, 285 * MS, 310 * MS), atol=1e-12)
-    # 4 ms of history after the interval's end: widened by 4 ms on both sides
-    r.add_keyframe(3, 394 * MS, full.gyro[78])
-    np.testing.assert_allclose(r.rate(3, 0.002), mean_gyro(full, 390 * MS, 400 * MS), atol=1e-12)
+    assert r.td_obs(2) == 0.003 and r.td_obs(7) == 0.0
+    np.testing.assert_allclose(r.rate(2, 0.010), mean_gyro(full, 300 * MS, 307 * MS), atol=1e-12)
+    np.testing.assert_allclose(r.rate(2, -0.002), mean_gyro(full, 295 * MS, 300 * MS), atol=1e-12)
+    np.testing.assert_allclose(r.rate(2, 0.003), full.gyro[60], atol=1e-12)

@@ -302,3 +302,33 @@ def test_random_selection_differs_from_the_grid(tmp_path):
     assert cells["random"] < cells["grid"]
     with pytest.raises(ValueError, match="selection"):
         TrackGenConfig(selection="nearest")
+
+
+def test_nearest_row_pose_interpolation():
+    """``pose_interp="nearest"`` samples the raw ground truth at the nearest row (a cruder
+    generator's camera poses); ``"slerp"`` interpolates between the bracketing rows."""
+    from vio.sim.tracks import _raw_poses
+    gt_t = np.array([0, 5, 10], np.int64) * 1_000_000
+    p = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    q = np.tile([1.0, 0, 0, 0], (3, 1))
+    t = np.array([1, 2, 3, 7, 9], np.int64) * 1_000_000
+    near, _ = _raw_poses(TrackGenConfig(pose_interp="nearest"), gt_t, p, q, t)
+    np.testing.assert_allclose(near[:, 0], [0, 0, 1, 1, 2])
+    lin, _ = _raw_poses(TrackGenConfig(), gt_t, p, q, t)
+    np.testing.assert_allclose(lin[:, 0], [0.2, 0.4, 0.6, 1.4, 1.8])
+    with pytest.raises(ValueError, match="pose_interp"):
+        TrackGenConfig(pose_interp="cubic")
+
+
+def test_one_respect_variants_differ_from_ours_in_one_group_of_settings():
+    """Every ``one:*`` variant sets only settings boxwall sets too, to boxwall's values, and
+    no two ``one:*`` variants share a setting: together they make up boxwall."""
+    from vio.sim.variants import VARIANTS
+    ones = {k: v for k, v in VARIANTS.items() if k.startswith("one:")}
+    assert len(ones) >= 6
+    keys = [set(v) for v in ones.values()]
+    assert set().union(*keys) == set(VARIANTS["boxwall"])
+    assert sum(len(k) for k in keys) == len(set().union(*keys))
+    for v in ones.values():
+        assert all(VARIANTS["boxwall"][k] == x for k, x in v.items())
+        TrackGenConfig(**v)

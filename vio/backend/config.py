@@ -161,7 +161,6 @@ class VisionConfig:
     td_velocity: Literal["predicted", "measured"] = "predicted"
     td_velocity_gate: float = 5.0
     td_velocity_max: float = 20.0
-    td_rate_smooth_s: float = 0.01
     pixel_sigma: float = 1.0
     kernel: Literal["huber", "cauchy", "none"] = "huber"
     kernel_k: float = 3.0

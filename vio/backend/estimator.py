@@ -113,7 +113,7 @@ class Estimator:
         self.k = -1
         self.kf_t: dict[int, int] = {}
         self.still_kf: set[int] = set()   # keyframes the pipeline flagged still (no td term)
-        self.rates = KeyframeRates(smooth_s=cfg.vision.td_rate_smooth_s)
+        self.rates = KeyframeRates()
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None

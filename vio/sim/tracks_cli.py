@@ -1,7 +1,7 @@
 """``vio tracks SRC OUT``: synthetic feature tracks from a real IMU + ground-truth sequence.
 
 Settings come from ``TrackGenConfig`` defaults, then ``--variant NAME`` (a named other
-generator, ``vio.sim.tracks.VARIANTS``), then ``--config FILE`` (YAML with TrackGenConfig
+generator, ``vio.sim.variants.VARIANTS``), then ``--config FILE`` (YAML with TrackGenConfig
 keys, strict), then the individual options below.
 """
 
@@ -17,7 +17,8 @@ import numpy as np
 
 from vio.config import from_dict, read_yaml
 from vio.errors import ConfigError, DataError
-from vio.sim.tracks import VARIANTS, TrackGenConfig, generate_tracks
+from vio.sim.tracks import TrackGenConfig, generate_tracks
+from vio.sim.variants import VARIANTS
 
 # option dest -> TrackGenConfig field
 _OVERRIDES = {"start": "start_s", "seconds": "duration_s", "td": "td_s", "seed": "seed",
