@@ -84,10 +84,12 @@ def variant_table(acc: dict) -> list[str]:
         rows.append([r["dataset"], _f(r.get("td_true_ms"), 1), _f(o.get("td_ms"), 2), _f(o.get("td_err_ms"), 2),
                      _f(o.get("ate_rmse")), _f(o.get("ate_pct"), 3), _f(ratio, 2)])
     out = ["### Generator variants (feature tracks from generators we did not tune on)", "",
-           "Generators: `vio.sim.variants.VARIANTS` (`boxwall`: landmarks on the walls of a box 2.5 m beyond "
-           "the flight envelope, 60 random tracks per frame, 3% loss per frame, 1% outliers up to 45 px, "
-           "raw ground truth). Targets: td within 0.5 ms, ATE within 1.25x of the td = 0 twin, under 0.2% "
-           "of the path.", ""]
+           "Generators: `vio.sim.variants.VARIANTS` (`boxwall`: issue 20's generator, landmarks on the walls "
+           "of a box 2.5 m beyond the flight envelope, 60 random tracks per frame, 3% loss per frame, 1% "
+           "outliers up to 45 px, raw ground truth; `one:*`: ours with one of those respects changed, "
+           "`raw-gt-nearest`: raw ground truth at the nearest row). 60-s excerpts from 1 s after the first "
+           "ground-truth row, sync layer at td 0 (the estimator finds td). Targets: td within 0.5 ms, ATE "
+           "within 1.25x of the td = 0 twin, under 0.2% of the path.", ""]
     return out + _table(["dataset", "true td [ms]", "td [ms]", "td error [ms]", "ATE [m]", "ATE % of path",
                          "ATE / td0 twin"], rows)
 

@@ -289,5 +289,19 @@ def test_variant_rows_get_their_own_table_with_the_twin_ratio():
         pytest.skip("euroc_imu_gt not found (../shared/data)")
     assert {s.td_true_s for s in specs} == {-0.020, 0.0, 0.012, 0.025}
     assert all(s.mode == "variants" and ds.run_mode(s.mode) == "features" for s in specs)
-    assert all(s.twin is None or s.twin.endswith("/td0ms") and s.twin.startswith("boxwall:") for s in specs)
+    names = {s.name for s in specs}
+    assert all(s.twin is None or s.twin.endswith("/td0ms") and s.twin in names
+               and s.twin.split(":")[0] == s.name.split(":")[0] for s in specs)
     assert dict(specs[0].gen)["selection"] == "random"
+    # one respect each: same excerpt and seed as ours, generator settings differ only there
+    from vio.sim.variants import VARIANTS
+    from dataclasses import asdict
+    ours = {s.td_true_s: asdict(s.gen_config()) for s in specs if s.name.startswith("ours:")}
+    n = 0
+    for s in specs:
+        v = s.name.split(":MH_03")[0]
+        if v.startswith("one:") and s.td_true_s in ours:
+            diff = {k for k, x in asdict(s.gen_config()).items() if ours[s.td_true_s][k] != x}
+            assert diff == set(VARIANTS[v]), (v, diff)
+            n += 1
+    assert n >= 12
