@@ -325,6 +325,7 @@ def readme_section(res: dict) -> str:
         a = np.array([t["diff_err_ms"] for t in acc["td"] if t.get("mode", "features") == "features"])
         out.append(f"td (true 5 ms): differential error mean {a.mean():+.2f} ms, RMS "
                    f"{np.sqrt(np.mean(a ** 2)):.2f} ms over {a.size} excerpts.")
+    out += _readme_variants(acc)
     mem = res.get("memory") or {}
     if _get(mem, "slope", "mb_per_min") is not None:
         out.append(f"Memory soak ({mem['minutes']:g} simulated min): RSS slope "
@@ -332,6 +333,22 @@ def readme_section(res: dict) -> str:
                    + (" (our pipeline raised before the end)" if mem.get("crash") else "") + ".")
     out += ["", "Full tables: `benchmarks/results/results.md` (`python benchmarks/run_all.py`)."]
     return "\n".join(out)
+
+
+def _readme_variants(acc: dict) -> list[str]:
+    """One README line on the generator-variant table (issue 20's targets)."""
+    runs = [r for r in acc.get("runs", []) if is_variant(r) and "ate_rmse" in r["ours"]]
+    if not runs:
+        return []
+    by = {r["dataset"]: r["ours"] for r in runs}
+    err = [abs(r["ours"]["td_err_ms"]) for r in runs if r["ours"].get("td_err_ms") is not None]
+    ratio = [r["ours"]["ate_rmse"] / by[r["twin"]]["ate_rmse"] for r in runs if r.get("twin") in by]
+    pct = [r["ours"]["ate_pct"] for r in runs]
+    return [f"Generator variants ({len(runs)} runs on tracks from generators we did not tune on, "
+            f"`benchmarks/results/results.md`): td error max {max(err):.2f} ms "
+            f"({sum(e <= 0.5 for e in err)} of {len(err)} within 0.5 ms); ATE / td0 twin max "
+            f"{max(ratio):.2f} ({sum(x <= 1.25 for x in ratio)} of {len(ratio)} within 1.25x); "
+            f"ATE max {max(pct):.3f}% of the path ({sum(x < 0.2 for x in pct)} of {len(pct)} under 0.2%)."]
 
 
 def _readme_images(acc: dict) -> list[str]:

@@ -136,9 +136,10 @@ def td_feedback(pipe: Pipeline, cfg: PipelineConfig) -> Callable[[], float] | No
     """The td the sync layer applies to the next frame: the estimator's estimate once it
     differs from the applied one by ``backend.calib.td_feedback_s``, in steps of at most
     ``td_feedback_step_s``, from ``td_feedback_after_s`` after initialization on (see
-    ``CalibConfig``); None when td is not estimated or the feedback is off."""
+    ``CalibConfig``); None when td is not estimated, the feedback is off, or the estimator
+    runs in the live backend process (``cfg.live``: its estimate is not here)."""
     cc = cfg.backend.calib
-    if not (cc.estimate_td and cfg.backend.vision.use_td and cc.td_feedback_s > 0):
+    if cfg.live or not (cc.estimate_td and cfg.backend.vision.use_td and cc.td_feedback_s > 0):
         return None
     applied, start = [float(cfg.td_s)], []
 
