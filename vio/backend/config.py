@@ -210,9 +210,11 @@ class CalibConfig:
     marginal carries was gathered while the remainder left to the td variable was large, and
     there the regressor's noise attenuates it (``CalibConfig`` above); it never washes out,
     since td is never marginalized. Measured from a sync layer at 0 with true +25 ms (our
-    generator, seeds 300/301): MH_03@1 td 24.16 -> 24.96 ms, ATE 0.049 -> 0.047 m; V1_03@1
-    24.58 -> 24.95 ms, 0.048 -> 0.048 m; the same excerpts synced 5 ms off from the start
-    (no re-anchoring) give 24.93 and 24.83 ms. 0 turns it off."""
+    generator, seeds 300/301): MH_03@1 td 24.16 -> 24.89 ms, ATE 0.049 -> 0.054 m; V1_03@1
+    24.58 -> 24.97 ms, 0.048 -> 0.047 m; the same excerpts synced 5 ms off from the start
+    (no re-anchoring) give 24.93 and 24.83 ms. Only once the feedback has caught up with
+    the estimate (else it restarted twice while the offset was still being stepped in).
+    0 turns it off."""
 
     estimate_extrinsic: bool = False
     estimate_td: bool = True
