@@ -9,6 +9,12 @@ Mode ``features`` (feature tracks in ``cam0/features.csv``):
   IMU and ground truth, with a known td (5 ms) and a fixed per-sequence seed, plus
   its td = 0 twin (same seed, same excerpt) for the differential td error.
 
+Mode ``variants`` (run as ``features``): the generator-variant table, so that no single
+generator defines the td and ATE figures (``variant_datasets``): issue 20's generator
+(``boxwall``) on three 60-s excerpts at true td -20, 0, +12, +25 ms, and each variant that
+differs from ours in one respect on one excerpt; seeds never used in development; each
+td != 0 set's ``twin`` is its td = 0 run (the ATE ratio's reference).
+
 Image modes: sequences rendered by ``vio.sim.simulate`` with fixed seeds never used in
 development (the lead developed on seed 0, the direct mode on seeds 3 and 5), 20 s at
 752x480 (quick: 8 s): stereo with td = 10 ms (seed 11), stereo with a 30 us/row
@@ -127,6 +133,47 @@ def generated_spec(seq: str, td_s: float, seed: int, start_s: float, duration_s:
                        group=group or base)
 
 
+VARIANT_TD_S = (-0.020, 0.0, 0.012, 0.025)
+VARIANT_SEQUENCES = ("MH_03_medium", "V1_03_difficult", "V2_01_easy")
+VARIANT_START_S = 1.0          # issue 20's excerpts: 60 s from 1 s after the first ground-truth row
+ONE_RESPECT_SEQUENCE = "MH_03_medium"
+ONE_RESPECT_TD_S = {"raw-gt-nearest": (0.0, 0.012)}   # nearest row = interpolated at td 0 and 25 ms
+ONE_RESPECT_DEFAULT_TD_S = (0.0, 0.025)
+
+
+def _variant_spec(variant: str, gen: dict, seq: str, td: float, seed: int, duration: float) -> DatasetSpec:
+    s = generated_spec(seq, td, seed, VARIANT_START_S, duration, group=f"{variant}:{seq}", **gen)
+    return dataclasses.replace(s, name=f"{variant}:{s.name}", mode="variants",
+                               twin=f"{variant}:{s.twin}" if s.twin else None)
+
+
+def variant_datasets(quick: bool) -> list[DatasetSpec]:
+    """The generator-variant table (seeds 400+, never used in development):
+
+    * ``boxwall`` (issue 20's generator) on ``VARIANT_SEQUENCES`` x ``VARIANT_TD_S``;
+    * ``ours`` and every one-respect variant (``one:*``, ``raw-gt-nearest``) on the
+      ``ONE_RESPECT_SEQUENCE`` excerpt at td 0 and +25 ms (+12 ms for the nearest-row
+      poses, which equal the interpolated ones on the 5-ms grid), same seed for all, so a
+      td or ATE difference to ``ours`` is that respect's effect.
+
+    60-s excerpts from ``VARIANT_START_S`` (quick: boxwall on MH_03, 20 s, td 0 and +25 ms)."""
+    from vio.sim.variants import VARIANTS
+    if quick:
+        return [_variant_spec("boxwall", VARIANTS["boxwall"], ONE_RESPECT_SEQUENCE, td, 400, 20.0)
+                for td in (0.0, 0.025)]
+    out = [_variant_spec("boxwall", VARIANTS["boxwall"], seq, td, 400 + SEQUENCES.index(seq), 60.0)
+           for seq in VARIANT_SEQUENCES for td in VARIANT_TD_S]
+    for variant in ["ours"] + sorted(k for k in VARIANTS if k not in ("ours", "boxwall")):
+        for td in ONE_RESPECT_TD_S.get(variant, ONE_RESPECT_DEFAULT_TD_S):
+            out.append(_variant_spec(variant, VARIANTS[variant], ONE_RESPECT_SEQUENCE, td, 420, 60.0))
+    return out
+
+
+def run_mode(mode: str) -> str:
+    """The pipeline mode a registry mode runs in (``variants`` are feature tracks)."""
+    return "features" if mode == "variants" else mode
+
+
 def feature_datasets(quick: bool) -> list[DatasetSpec]:
     """Real V1_01 plus generated excerpts (td 5 ms and their td 0 twins)."""
     specs = [DatasetSpec("V1_01_real", "features", V1_01, group="V1_01_real")]
@@ -198,6 +245,7 @@ def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
 
 MODES: dict[str, Mode] = {
     "features": Mode("features", feature_datasets),
+    "variants": Mode("variants", variant_datasets),
     "stereo": Mode("stereo", partial(image_datasets, "stereo")),
     "mono": Mode("mono", partial(image_datasets, "mono")),
     "direct": Mode("direct", partial(image_datasets, "direct")),

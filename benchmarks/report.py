@@ -60,12 +60,43 @@ def _ms(m: dict) -> str:
 def is_image(run: dict) -> bool:
     """Image-mode rows (rendered sequences through our KLT front end) are tabulated
     apart from the feature-track rows; JSON written before modes existed is ``features``."""
-    return run.get("mode", "features") != "features"
+    return run.get("mode", "features") not in ("features", "variants")
+
+
+def is_variant(run: dict) -> bool:
+    """Rows of the generator-variant table (feature tracks from generators other than ours)."""
+    return run.get("mode") == "variants"
+
+
+def variant_table(acc: dict) -> list[str]:
+    """The generator-variant table: td and ATE on tracks from generators we did not tune
+    on, each td != 0 run against its td = 0 twin (issue 20's targets: td within 0.5 ms,
+    ATE within 1.25x of the twin, every excerpt under 0.2% of its path)."""
+    runs = [r for r in acc.get("runs", []) if is_variant(r)]
+    if not runs:
+        return []
+    by_name = {r["dataset"]: r for r in runs}
+    rows = []
+    for r in runs:
+        o = r["ours"]
+        twin = (by_name.get(r.get("twin")) or {}).get("ours", {}) if r.get("twin") else {}
+        ratio = (o["ate_rmse"] / twin["ate_rmse"]) if o.get("ate_rmse") and twin.get("ate_rmse") else None
+        rows.append([r["dataset"], _f(r.get("td_true_ms"), 1), _f(o.get("td_ms"), 2), _f(o.get("td_err_ms"), 2),
+                     _f(o.get("ate_rmse")), _f(o.get("ate_pct"), 3), _f(ratio, 2)])
+    out = ["### Generator variants (feature tracks from generators we did not tune on)", "",
+           "Generators: `vio.sim.variants.VARIANTS` (`boxwall`: issue 20's generator, landmarks on the walls "
+           "of a box 2.5 m beyond the flight envelope, 60 random tracks per frame, 3% loss per frame, 1% "
+           "outliers up to 45 px, raw ground truth; `one:*`: ours with one of those respects changed, "
+           "`raw-gt-nearest`: raw ground truth at the nearest row). 60-s excerpts from 1 s after the first "
+           "ground-truth row, sync layer at td 0 (the estimator finds td). Targets: td within 0.5 ms, ATE "
+           "within 1.25x of the td = 0 twin, under 0.2% of the path.", ""]
+    return out + _table(["dataset", "true td [ms]", "td [ms]", "td error [ms]", "ATE [m]", "ATE % of path",
+                         "ATE / td0 twin"], rows)
 
 
 def accuracy_tables(acc: dict) -> list[str]:
     """Accuracy and speed tables of the feature-track runs."""
-    runs = [r for r in acc.get("runs", []) if not is_image(r)]
+    runs = [r for r in acc.get("runs", []) if not is_image(r) and not is_variant(r)]
     rows_a, rows_s = [], []
     for r in runs:
         o, b = r["ours"], r["baseline"]
@@ -159,7 +190,8 @@ def image_tables(acc: dict) -> list[str]:
 
 def td_table(acc: dict) -> list[str]:
     rows = [[t["group"], _f(t["td_true_ms"], 1), _f(t["td_est_ms"], 2), _f(t["td0_est_ms"], 2),
-             _f(t["raw_err_ms"], 2), _f(t["diff_ms"], 2), _f(t["diff_err_ms"], 2)] for t in acc.get("td", [])]
+             _f(t["raw_err_ms"], 2), _f(t["diff_ms"], 2), _f(t["diff_err_ms"], 2)] for t in acc.get("td", [])
+            if t.get("mode", "features") == "features"]
     if not rows:
         return []
     out = ["### Time offset td (ours; the baseline does not estimate it)", "",
@@ -169,7 +201,7 @@ def td_table(acc: dict) -> list[str]:
            "(what remains of the estimator's error once whatever both twins share cancels).", ""]
     out += _table(["excerpt", "true [ms]", "estimate [ms]", "estimate td0 twin [ms]", "raw error [ms]",
                    "differential [ms]", "differential error [ms]"], rows)
-    a = np.array([t["diff_err_ms"] for t in acc["td"]])
+    a = np.array([t["diff_err_ms"] for t in acc["td"] if t.get("mode", "features") == "features"])
     out += ["", f"Differential error: mean {a.mean():+.2f} ms, RMS {np.sqrt(np.mean(a ** 2)):.2f} ms "
                 f"over {a.size} excerpts."]
     return out
@@ -257,10 +289,12 @@ def render(res: dict) -> str:
            "IncrementalFixedLagSmoother (QR), fed our keyframes, initial state and IMU noise.", ""]
     acc = res.get("accuracy")
     if acc:
-        if any(not is_image(r) for r in acc.get("runs", [])) or not acc.get("runs"):
+        if any(not is_image(r) for r in acc.get("runs", [])) or not acc.get("runs"):   # incl. variants
             out += ["## Accuracy and speed, mode `features`", ""] + accuracy_tables(acc) + [""] + td_table(acc)
             cal = calibration_table(acc)
             out += [""] + cal if cal else []
+            var = variant_table(acc)
+            out += [""] + var if var else []
         if any(is_image(r) for r in acc.get("runs", [])):
             out += ([""] if out[-1] else []) + ["## Accuracy and speed, image modes", ""] + image_tables(acc)
         if acc.get("skipped"):
@@ -278,7 +312,7 @@ def render(res: dict) -> str:
 def readme_section(res: dict) -> str:
     """The short README summary: one row per dataset plus the headline ratios."""
     acc = res.get("accuracy") or {}
-    feat = [r for r in acc.get("runs", []) if not is_image(r)]
+    feat = [r for r in acc.get("runs", []) if not is_image(r) and not is_variant(r)]
     rows = [[r["dataset"], _f(r["ours"].get("ate_rmse")), _f(r["baseline"].get("ate_rmse")),
              _f(_get(r["ours"], "frame_ms", "mean"), 1), _f(_get(r["baseline"], "frame_ms", "mean"), 1)]
             for r in feat]
@@ -288,9 +322,10 @@ def readme_section(res: dict) -> str:
                        "baseline ms/frame"], rows) + [""] + headline(feat)
     out += _readme_images(acc)
     if acc.get("td"):
-        a = np.array([t["diff_err_ms"] for t in acc["td"]])
+        a = np.array([t["diff_err_ms"] for t in acc["td"] if t.get("mode", "features") == "features"])
         out.append(f"td (true 5 ms): differential error mean {a.mean():+.2f} ms, RMS "
                    f"{np.sqrt(np.mean(a ** 2)):.2f} ms over {a.size} excerpts.")
+    out += _readme_variants(acc)
     mem = res.get("memory") or {}
     if _get(mem, "slope", "mb_per_min") is not None:
         out.append(f"Memory soak ({mem['minutes']:g} simulated min): RSS slope "
@@ -298,6 +333,22 @@ def readme_section(res: dict) -> str:
                    + (" (our pipeline raised before the end)" if mem.get("crash") else "") + ".")
     out += ["", "Full tables: `benchmarks/results/results.md` (`python benchmarks/run_all.py`)."]
     return "\n".join(out)
+
+
+def _readme_variants(acc: dict) -> list[str]:
+    """One README line on the generator-variant table (issue 20's targets)."""
+    runs = [r for r in acc.get("runs", []) if is_variant(r) and "ate_rmse" in r["ours"]]
+    if not runs:
+        return []
+    by = {r["dataset"]: r["ours"] for r in runs}
+    err = [abs(r["ours"]["td_err_ms"]) for r in runs if r["ours"].get("td_err_ms") is not None]
+    ratio = [r["ours"]["ate_rmse"] / by[r["twin"]]["ate_rmse"] for r in runs if r.get("twin") in by]
+    pct = [r["ours"]["ate_pct"] for r in runs]
+    return [f"Generator variants ({len(runs)} runs on tracks from generators we did not tune on, "
+            f"`benchmarks/results/results.md`): td error max {max(err):.2f} ms "
+            f"({sum(e <= 0.5 for e in err)} of {len(err)} within 0.5 ms); ATE / td0 twin max "
+            f"{max(ratio):.2f} ({sum(x <= 1.25 for x in ratio)} of {len(ratio)} within 1.25x); "
+            f"ATE max {max(pct):.3f}% of the path ({sum(x < 0.2 for x in pct)} of {len(pct)} under 0.2%)."]
 
 
 def _readme_images(acc: dict) -> list[str]:

@@ -206,10 +206,12 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
     gt = read_groundtruth(find_mav0(path) / "state_groundtruth_estimate0")
     with tempfile.TemporaryDirectory(prefix="vio-sched-") as tmp:
         job = {"data": str(path), "schedule": str(Path(tmp) / "schedule.json"),
-               "frames": str(Path(tmp) / "frames.npz"), "mode": spec.mode,
+               "frames": str(Path(tmp) / "frames.npz"), "mode": ds.run_mode(spec.mode),
                "max_frames": spec.max_frames, "overrides": overrides or {}}
         ours = metrics(run_job({**job, "system": "ours"}), gt, spec.td_true_s)
-        if spec.mode in NO_BASELINE:
+        if spec.mode == "variants":
+            base = {"skipped": "the generator-variant table measures ours only"}
+        elif spec.mode in NO_BASELINE:
             base = {"skipped": NO_BASELINE[spec.mode]}
         else:
             base = (metrics(run_job({**job, "system": "baseline"}), gt, spec.td_true_s)
@@ -218,7 +220,7 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
         # separates the unmodelled-td error from the rest of the comparison
         known = (metrics(run_job({**job, "system": "baseline", "td_known_s": spec.td_true_s}), gt,
                          spec.td_true_s)
-                 if spec.mode != "features" and spec.mode not in NO_BASELINE and spec.td_true_s
+                 if ds.run_mode(spec.mode) != "features" and spec.mode not in NO_BASELINE and spec.td_true_s
                  and "error" not in ours else None)
     row = {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin,
            "td_true_ms": None if spec.td_true_s is None else spec.td_true_s * 1e3,
@@ -253,7 +255,8 @@ def td_summary(rows: list[dict]) -> list[dict]:
         if twin is None or "td_ms" not in r["ours"] or "td_ms" not in twin["ours"]:
             continue
         diff = r["ours"]["td_ms"] - twin["ours"]["td_ms"]
-        out.append({"group": r["group"], "td_true_ms": r["td_true_ms"], "td_est_ms": r["ours"]["td_ms"],
+        out.append({"group": r["group"], "mode": r.get("mode", "features"),
+                    "td_true_ms": r["td_true_ms"], "td_est_ms": r["ours"]["td_ms"],
                     "td0_est_ms": twin["ours"]["td_ms"], "raw_err_ms": r["ours"].get("td_err_ms"),
                     "diff_ms": diff, "diff_err_ms": diff - r["td_true_ms"]})
     return out

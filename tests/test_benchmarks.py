@@ -270,3 +270,46 @@ def test_calibration_spec_perturbs_the_extrinsic_and_keeps_the_truth(tmp_path):
     assert spec.pipeline_overrides() == {"backend.calib.estimate_extrinsic": True}
     plain = next(s for s in ds.feature_datasets(False) if s.group == spec.group.split("/calib")[0])
     assert spec.key() != plain.key()     # its own cache folder
+
+
+def test_variant_rows_get_their_own_table_with_the_twin_ratio():
+    """``variants`` rows (other generators) are tabulated apart, with the td error and the
+    ATE ratio to their td = 0 twin; the feature tables and the td table are unchanged."""
+    res = json.loads(json.dumps(TINY))
+    base = report.render(res)
+
+    def row(td, ate, est):
+        name = f"boxwall:SEQ@0+60s/td{td:g}ms"
+        return {"dataset": name, "mode": "variants", "group": "boxwall:SEQ", "td_true_ms": float(td),
+                "twin": None if td == 0 else "boxwall:SEQ@0+60s/td0ms", "overrides": {},
+                "ours": {"ate_rmse": ate, "ate_pct": 0.1, "td_ms": est, "td_err_ms": est - td, "path_m": 50.0,
+                         "frame_ms": {"mean": 30.0, "p50": 20.0, "p95": 90.0, "max": 200.0}},
+                "baseline": {"skipped": "ours only"}, "ratio": {"ate": None, "time": None}}
+    res["accuracy"]["runs"] += [row(0, 0.04, -0.1), row(25, 0.05, 24.7)]
+    md = report.render(res)
+    assert "### Generator variants" in md
+    assert "| boxwall:SEQ@0+60s/td25ms | 25.0 | 24.70 | -0.30 | 0.050 | 0.100 | 1.25 |" in md
+    assert md.split("### Generator variants")[0].rstrip() == base.split("Skipped:")[0].rstrip() or \
+        "boxwall" not in md.split("### Generator variants")[0]
+    import datasets as ds
+    specs, _ = ds.registry(quick=False, modes=["variants"])
+    if not specs:
+        pytest.skip("euroc_imu_gt not found (../shared/data)")
+    assert {s.td_true_s for s in specs} == {-0.020, 0.0, 0.012, 0.025}
+    assert all(s.mode == "variants" and ds.run_mode(s.mode) == "features" for s in specs)
+    names = {s.name for s in specs}
+    assert all(s.twin is None or s.twin.endswith("/td0ms") and s.twin in names
+               and s.twin.split(":")[0] == s.name.split(":")[0] for s in specs)
+    assert dict(specs[0].gen)["selection"] == "random"
+    # one respect each: same excerpt and seed as ours, generator settings differ only there
+    from vio.sim.variants import VARIANTS
+    from dataclasses import asdict
+    ours = {s.td_true_s: asdict(s.gen_config()) for s in specs if s.name.startswith("ours:")}
+    n = 0
+    for s in specs:
+        v = s.name.split(":MH_03")[0]
+        if v.startswith("one:") and s.td_true_s in ours:
+            diff = {k for k, x in asdict(s.gen_config()).items() if ours[s.td_true_s][k] != x}
+            assert diff == set(VARIANTS[v]), (v, diff)
+            n += 1
+    assert n >= 12

@@ -67,3 +67,16 @@ def test_keyframe_rate_cut_at_the_history_and_history_trimmed():
     # an interval the history no longer holds falls back to the reading
     r.add_keyframe(2, 50 * MS, np.array([1.0, 2.0, 3.0]))
     np.testing.assert_array_equal(r.rate(2, 0.005), [1.0, 2.0, 3.0])
+
+
+def test_keyframe_rate_offset_by_td_obs():
+    """A keyframe whose time already holds ``td_obs`` of the offset (the sync layer's fed-back
+    estimate): its rate is the mean over [t_k, t_k + td - td_obs] (or the reverse)."""
+    full = _imu(0, 400)
+    r = KeyframeRates(margin_s=0.15)
+    r.add_imu(full)
+    r.add_keyframe(2, 300 * MS, full.gyro[60], td_obs_s=0.003)
+    assert r.td_obs(2) == 0.003 and r.td_obs(7) == 0.0
+    np.testing.assert_allclose(r.rate(2, 0.010), mean_gyro(full, 300 * MS, 307 * MS), atol=1e-12)
+    np.testing.assert_allclose(r.rate(2, -0.002), mean_gyro(full, 295 * MS, 300 * MS), atol=1e-12)
+    np.testing.assert_allclose(r.rate(2, 0.003), full.gyro[60], atol=1e-12)

@@ -124,3 +124,22 @@ def test_preintegrated_packets_match_ground_truth_on_real_v1_02():
     assert len(pos_err) == 300
     assert max(pos_err) < 1e-3 and np.median(pos_err) < 2e-4
     assert max(rot_err) < 0.1 and np.median(rot_err) < 0.03
+
+
+def test_td_source_shifts_the_frames_served_after_it_changes():
+    """``packets(..., td_source=)``: each frame gets the td the source returns when it is
+    served (the estimator's fed-back estimate); the IMU segments still tile the axis."""
+    t = np.arange(0, 2_000_000_001, 5_000_000, dtype=np.int64)
+    imu = ImuData(t, np.zeros((len(t), 3)), np.zeros((len(t), 3)))
+    stamps = np.arange(100_000_000, 1_000_000_001, 50_000_000, dtype=np.int64)
+    tds = iter([0.0] * 5 + [0.012] * 5 + [-0.007] * 100)
+    pk = list(packets(imu, stamps, 0.0, td_source=lambda: next(tds)))
+    assert len(pk) == len(stamps)
+    off = np.array([p.t_ns - p.stamp_ns for p in pk])
+    np.testing.assert_array_equal(off[:5], 0)
+    np.testing.assert_array_equal(off[5:10], 12_000_000)
+    np.testing.assert_array_equal(off[10:], -7_000_000)
+    for a, b in zip(pk[:-1], pk[1:]):
+        assert b.imu.t_ns[0] == a.t_ns and b.imu.t_ns[-1] == b.t_ns
+    with pytest.raises(ValueError):
+        Synchronizer().set_td(float("nan"))

@@ -253,3 +253,82 @@ def test_track_lifetimes_are_calibrated_on_real_klt_tracks(tmp_path):
     assert 10 <= med <= 20 and 0.6 * w_real < w < 1.2 * w_real, (med, w)
     geo = generate_tracks(src, tmp_path / "g", TrackGenConfig(seed=1, persistent_fraction=0.0))
     assert _track_stats(geo.landmark_id)[1] < 0.3 * w_real
+
+
+@needs_data
+def test_boxwall_variant_from_the_cli(tmp_path):
+    """``--variant boxwall`` (issue 20's generator): 60 random tracks per frame on the walls
+    of a box 2.5 m beyond the flight envelope, geometric lifetimes (3% loss per frame, no
+    persistent tracks), 1% displaced outliers (no swaps), the raw ground truth written
+    verbatim; an explicit option still overrides the variant."""
+    parser = argparse.ArgumentParser(prog="vio")
+    tracks_cli.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["tracks", str(GT_DIR / "V2_01_easy"), str(tmp_path / "o"), "--start", "30",
+                              "--seconds", "10", "--variant", "boxwall", "--seed", "4", "--td", "0.012"])
+    cfg = tracks_cli.config_from_args(args)
+    assert cfg.selection == "random" and cfg.max_features == 60 and not cfg.imu_consistent
+    assert cfg.td_s == 0.012 and cfg.n_clutter_boxes == 0 and cfg.swap_fraction == 0.0
+    res = generate_tracks(GT_DIR / "V2_01_easy", tmp_path / "o", cfg)
+    fpf = res.features_per_frame
+    assert fpf.min() >= 55 and fpf.mean() > 59
+    assert set(np.unique(res.outlier_kind)) <= {0, 1}
+    n_out = np.count_nonzero(res.outlier_kind)
+    assert 0.005 * len(res.frame_idx) < n_out < 0.02 * len(res.frame_idx)
+    err = np.linalg.norm(res.uv - res.uv_true, axis=1)[res.outlier_kind == 1] * 458.654
+    assert err.max() < 47 and np.median(err) > 10
+    # every landmark lies on the box (no clutter): one coordinate at a face
+    p = res.landmark_p_w
+    lo, hi = p.min(0), p.max(0)
+    on_face = np.any(np.isclose(p, lo, atol=1e-9) | np.isclose(p, hi, atol=1e-9), axis=1)
+    assert on_face.all()
+    # raw ground truth: the source rows verbatim, not the IMU-fused trajectory
+    rel = "mav0/state_groundtruth_estimate0/data.csv"
+    src_rows = set((GT_DIR / "V2_01_easy" / rel).read_text().splitlines())
+    out_rows = (tmp_path / "o" / rel).read_text().splitlines()
+    assert len(out_rows) > 2000 and set(out_rows) <= src_rows
+
+
+@needs_data
+def test_random_selection_differs_from_the_grid(tmp_path):
+    """``selection="random"`` picks new tracks uniformly: fewer image cells covered per
+    frame than the grid picker on the same room and trajectory."""
+    cells = {}
+    for sel in ("grid", "random"):
+        res = generate_tracks(GT_DIR / "V1_02_medium", tmp_path / sel,
+                              TrackGenConfig(seed=1, selection=sel, **CLEAN))
+        px = res.uv_true * 458.654 + [367.2, 248.4]
+        c = (np.clip(px[:, 0] // (752 / 8), 0, 7) + 8 * np.clip(px[:, 1] // (480 / 5), 0, 4)).astype(int)
+        cells[sel] = np.mean([len(np.unique(c[res.frame_idx == f])) for f in range(0, len(res.t_ns), 10)])
+    assert cells["random"] < cells["grid"]
+    with pytest.raises(ValueError, match="selection"):
+        TrackGenConfig(selection="nearest")
+
+
+def test_nearest_row_pose_interpolation():
+    """``pose_interp="nearest"`` samples the raw ground truth at the nearest row (a cruder
+    generator's camera poses); ``"slerp"`` interpolates between the bracketing rows."""
+    from vio.sim.tracks import _raw_poses
+    gt_t = np.array([0, 5, 10], np.int64) * 1_000_000
+    p = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    q = np.tile([1.0, 0, 0, 0], (3, 1))
+    t = np.array([1, 2, 3, 7, 9], np.int64) * 1_000_000
+    near, _ = _raw_poses(TrackGenConfig(pose_interp="nearest"), gt_t, p, q, t)
+    np.testing.assert_allclose(near[:, 0], [0, 0, 1, 1, 2])
+    lin, _ = _raw_poses(TrackGenConfig(), gt_t, p, q, t)
+    np.testing.assert_allclose(lin[:, 0], [0.2, 0.4, 0.6, 1.4, 1.8])
+    with pytest.raises(ValueError, match="pose_interp"):
+        TrackGenConfig(pose_interp="cubic")
+
+
+def test_one_respect_variants_differ_from_ours_in_one_group_of_settings():
+    """Every ``one:*`` variant sets only settings boxwall sets too, to boxwall's values, and
+    no two ``one:*`` variants share a setting: together they make up boxwall."""
+    from vio.sim.variants import VARIANTS
+    ones = {k: v for k, v in VARIANTS.items() if k.startswith("one:")}
+    assert len(ones) >= 6
+    keys = [set(v) for v in ones.values()]
+    assert set().union(*keys) == set(VARIANTS["boxwall"])
+    assert sum(len(k) for k in keys) == len(set().union(*keys))
+    for v in ones.values():
+        assert all(VARIANTS["boxwall"][k] == x for k, x in v.items())
+        TrackGenConfig(**v)

@@ -124,6 +124,13 @@ class KeyframeRates:
     which the single reading feeds into the td regressor as noise that pulls td towards
     zero (measured: about 20% low on EuRoC-IMU excerpts, see README).
 
+    ``td_obs_s`` (``add_keyframe``): the part of td the keyframe's time already holds (the
+    sync layer's fed-back offset): the interval is then [t_k, t_k + td - td_obs_s].
+    (Widening the interval by 10 ms on both sides to average the vibration was tried and
+    dropped: td and ATE unchanged within 0.1 ms / 3 mm on the MH_03 and V1_03 excerpts at
+    +25 ms, real V1_01 0.0267 -> 0.0270 m, and it tipped the fault suite's 3-s bridged IMU
+    gap into a divergence restart.)
+
     The IMU history is kept from ``margin_s`` before the oldest keyframe; an interval
     the history does not cover yet (the newest keyframe, td > 0) is cut at its end, and
     the reading at ``t_k`` is used where nothing of the interval is covered.
@@ -131,6 +138,7 @@ class KeyframeRates:
 
     def __init__(self, margin_s: float = 0.1, td_tol_s: float = 2e-5) -> None:
         self._kf: dict[int, tuple[int, np.ndarray]] = {}    # k -> (t_ns, reading at t_ns)
+        self._td_obs: dict[int, float] = {}
         self._cache: dict[int, tuple[float, int, np.ndarray]] = {}
         self._margin_ns = int(margin_s * 1e9)
         self._td_tol = td_tol_s
@@ -147,18 +155,25 @@ class KeyframeRates:
             if not self._kf:
                 self._trim(int(self._hist.t_ns[-1]) - self._margin_ns)
 
-    def add_keyframe(self, k: int, t_ns: int, gyro: np.ndarray) -> None:
-        """Keyframe ``k`` at ``t_ns`` with the raw reading ``gyro`` (3,) at that time."""
+    def add_keyframe(self, k: int, t_ns: int, gyro: np.ndarray, td_obs_s: float = 0.0) -> None:
+        """Keyframe ``k`` at ``t_ns`` with the raw reading ``gyro`` (3,) at that time;
+        ``td_obs_s``: the part of td its time already holds (its observations are
+        ``td - td_obs_s`` after ``t_ns``)."""
         self._kf[k] = (int(t_ns), np.asarray(gyro, float).reshape(3))
+        self._td_obs[k] = float(td_obs_s)
         self._cache.pop(k, None)
+
+    def td_obs(self, k: int) -> float:
+        """The ``td_obs_s`` keyframe ``k`` was added with (0 if unknown)."""
+        return self._td_obs.get(k, 0.0)
 
     def __contains__(self, k: int) -> bool:
         return k in self._kf
 
     def rate(self, k: int, td_s: float) -> np.ndarray:
-        """Mean raw gyro (3,) over [t_k, t_k + td] (or [t_k + td, t_k] for td < 0)."""
+        """Mean raw gyro (3,) over [t_k, t_k + td - td_obs_k] (or the reverse interval)."""
         (t, reading), h = self._kf[k], self._hist
-        lo, hi = sorted((t, t + int(round(td_s * 1e9))))
+        lo, hi = sorted((t, t + int(round((td_s - self._td_obs.get(k, 0.0)) * 1e9))))
         if h is None or hi <= h.t_ns[0] or lo >= h.t_ns[-1]:
             return reading
         lo, hi = max(lo, int(h.t_ns[0])), min(hi, int(h.t_ns[-1]))
@@ -172,6 +187,7 @@ class KeyframeRates:
     def drop(self, k: int) -> None:
         """Forget keyframe ``k`` and the IMU history no remaining keyframe needs."""
         self._kf.pop(k, None)
+        self._td_obs.pop(k, None)
         self._cache.pop(k, None)
         if self._kf and self._hist is not None:
             self._trim(min(t for t, _ in self._kf.values()) - self._margin_ns)

@@ -136,6 +136,30 @@ def _image_files(data: EurocDataset, stereo: bool, n: int) -> list[tuple]:
     return out
 
 
+def td_feedback(pipe: Pipeline, cfg: PipelineConfig) -> Callable[[], float] | None:
+    """The td the sync layer applies to the next frame: the estimator's estimate once it
+    differs from the applied one by ``backend.calib.td_feedback_s``, in steps of at most
+    ``td_feedback_step_s``, from ``td_feedback_after_s`` after initialization on (see
+    ``CalibConfig``); None when td is not estimated, the feedback is off, or the estimator
+    runs in the live backend process (``cfg.live``: its estimate is not here)."""
+    cc = cfg.backend.calib
+    if cfg.live or not (cc.estimate_td and cfg.backend.vision.use_td and cc.td_feedback_s > 0):
+        return None
+    applied, start = [float(cfg.td_s)], []
+
+    def source() -> float:
+        if not pipe.est.initialized:
+            return applied[0]
+        t = pipe.est.kf_t[pipe.est.k] * 1e-9
+        start[:] = start or [t]
+        if t - start[0] >= cc.td_feedback_after_s:
+            d = pipe.est.td() - applied[0]
+            if abs(d) >= cc.td_feedback_s:
+                applied[0] += float(np.clip(d, -cc.td_feedback_step_s, cc.td_feedback_step_s))
+        return applied[0]
+    return source
+
+
 def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: np.ndarray,
                    pipe: Pipeline) -> tuple[Iterator[FramePacket], Callable | None]:
     """The packets of a run and the stage applied to each in this process (None when
@@ -144,7 +168,8 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
     screen = dict(lookahead_s=cfg.imu_lookahead_s, screen=cfg.imu_screen, rate_hz=ic.rate_hz,
                   accel_range=ic.accel_range, gyro_range=ic.gyro_range)
     if mode == "features":
-        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)], **screen), None
+        return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)], **screen,
+                       td_source=td_feedback(pipe, cfg)), None
     stereo = mode in STEREO_MODES
     it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
                  **screen)

@@ -37,7 +37,7 @@ import math
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -161,6 +161,14 @@ class Synchronizer:
             raise ValueError(f"frame stamp {stamp_ns} does not increase")
         self._frames.append(_Frame(stamp_ns, features, tuple(image_files), tuple(images)))
 
+    def set_td(self, td_s: float) -> None:
+        """Apply ``td_s`` (s) to the frames served from now on (the estimator's fed-back
+        estimate, see ``vio.backend.config.CalibConfig.td_feedback_s``); a frame it would
+        put at or before the previous one is dropped as usual."""
+        if not np.isfinite(td_s):
+            raise ValueError(f"td must be finite, got {td_s}")
+        self.td_ns = int(round(td_s * 1e9))
+
     def close(self) -> None:
         """No more IMU will come: frames beyond the last sample become DROPPED."""
         self._closed = True
@@ -241,14 +249,16 @@ def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
             image_files: list[tuple[Path, ...]] | None = None,
             lookahead_s: float = 0.0, screen: ImuScreenConfig = ImuScreenConfig(),
             rate_hz: float | None = None, accel_range: float = math.inf,
-            gyro_range: float = math.inf) -> Iterator[FramePacket]:
+            gyro_range: float = math.inf,
+            td_source: Callable[[], float] | None = None) -> Iterator[FramePacket]:
     """Iterate a recorded dataset as packets (dropped frames are skipped).
 
     ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``. ``screen``,
     ``rate_hz`` (nominal IMU rate, ``sensor.yaml``), ``accel_range`` / ``gyro_range``:
     the IMU fault screen (``vio.faults``). The nominal period used for gaps is the
     longer of ``1/rate_hz`` and the recording's median sample interval (a mislabelled
-    rate must not turn every interval into a gap).
+    rate must not turn every interval into a gap). ``td_source``: called before each
+    frame is served, returns the td (s) to apply to it (td feedback).
     """
     period = float(np.median(np.diff(imu.t_ns))) * 1e-9 if len(imu) > 1 else 0.0
     rates = [r for r in (rate_hz, 1.0 / period if period > 0 else None) if r]
@@ -257,6 +267,8 @@ def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
     sync.add_imu_block(imu)
     sync.close()
     for k, stamp in enumerate(frame_stamps):
+        if td_source is not None:
+            sync.set_td(td_source())
         sync.add_frame(int(stamp), features[k] if features is not None else None,
                        image_files[k] if image_files is not None else ())
         res = sync.poll()

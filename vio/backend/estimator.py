@@ -105,6 +105,8 @@ class Estimator:
             np.r_[np.full(3, w * imu_calib.accel_random_walk), np.full(3, w * imu_calib.gyro_random_walk)])
         self.bridged = 0          # keyframe intervals bridged across IMU gaps
         self.divergences = 0      # soft restarts after a divergence
+        self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
+        self._td_anchor = 0.0     # the td its keyframe time held at the last (re)start (s)
         self.t_start: int | None = None
         self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
         self.td0 = 0.0  # residual td prior mean (the sync layer applies td0_s)
@@ -143,11 +145,15 @@ class Estimator:
         """Start the window at ``state`` (keyframe 0)."""
         self._restart(0, state, self.cam.T_b_c if T_b_c is None else T_b_c,
                       self.td0 if td_s is None else td_s, None)
+        if state.method == "static":    # a still start: its images carry no timing information
+            self.still_kf.add(0)
 
     def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
-                 pose_sigmas: np.ndarray | None, init: InitConfig | None = None) -> None:
+                 pose_sigmas: np.ndarray | None, init: InitConfig | None = None,
+                 priors: gtsam.NonlinearFactorGraph | None = None) -> None:
         """A fresh smoother holding keyframe ``k`` at ``state`` with priors, extrinsic and td
-        (``init``: the prior sigmas, default ``cfg.init``)."""
+        (``init``: the prior sigmas, default ``cfg.init``; ``priors``: the state's priors
+        instead)."""
         self.smoother = self._new_smoother()
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
@@ -157,7 +163,9 @@ class Estimator:
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
         self.rates.reset_to(k)
-        g = graph.state_priors(k, state, self.cfg.init if init is None else init, pose_sigmas)
+        self._td_anchor = self.rates.td_obs(k)
+        g = priors if priors is not None else graph.state_priors(
+            k, state, self.cfg.init if init is None else init, pose_sigmas)
         g.push_back(graph.calib_priors(T_b_c, td, self.cfg.calib))
         v = gtsam.Values()
         v.insert(X(k), state.T_w_b)
@@ -237,8 +245,9 @@ class Estimator:
         stamps = {X(k1): t, V(k1): t, B(k1): t, graph.EXTRINSIC: t, graph.TD: t}
         self.k = k1
         self.kf_t[k1] = t_ns
+        td_obs = self.td_obs(frame)
         if gyro is not None:
-            self.rates.add_keyframe(k1, t_ns, gyro)
+            self.rates.add_keyframe(k1, t_ns, gyro, td_obs)
         self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
@@ -260,6 +269,8 @@ class Estimator:
             self._check_health(t_ns, n_removed, f_imu)
         if not recovered and self.k == k1 and self.divergences == div0:
             self.refiner.keyframe(self, k0, k1, t_ns, self.pim, bridged)
+        if not recovered and self.k == k1:
+            self._maybe_reanchor_td()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
@@ -346,9 +357,53 @@ class Estimator:
                                    prior_gyro_bias_sigma=h.restart_gyro_bias_sigma)
         self._restart(self.k, state, T_b_c, td, None, init)
 
+    def _maybe_reanchor_td(self) -> None:
+        """Restart the window at the current state and td once the sync layer holds
+        ``td_reanchor_s`` more of td than at the last (re)start (and has caught up with the
+        estimate) and td's sigma is below ``td_reanchor_sigma_s`` (``CalibConfig``)."""
+        cc, held = self.cfg.calib, self.rates.td_obs(self.k)
+        if (cc.td_reanchor_s <= 0 or abs(held - self._td_anchor) < cc.td_reanchor_s
+                or abs(self.td() - self.td_applied_s - held) >= max(cc.td_feedback_s, 1e-4)):
+            return     # not moved enough yet, or the feedback still catching up
+        k, (T, v, b) = self.k, self.latest()
+        cov, noise = self.smoother.marginalCovariance, gtsam.noiseModel.Gaussian.Covariance
+        try:
+            sigma = float(np.sqrt(cov(graph.TD)[0, 0]))
+            if not sigma < cc.td_reanchor_sigma_s:
+                return
+            g = gtsam.NonlinearFactorGraph()   # the state keeps its marginal, td loses its own
+            g.add(gtsam.PriorFactorPose3(X(k), T, noise(cov(X(k)))))
+            g.add(gtsam.PriorFactorVector(V(k), v, noise(cov(V(k)))))
+            g.add(gtsam.PriorFactorConstantBias(B(k), b, noise(cov(B(k)))))
+        except (RuntimeError, ValueError):
+            return
+        T_b_c, td = self.values.atPose3(graph.EXTRINSIC), float(self.values.atVector(graph.TD)[0])
+        t_ns = self.kf_t[k]
+        self.td_reanchors += 1
+        log.info("t=%d ns: td re-anchored at %.2f ms (sigma %.2f ms; the sync layer applies %.2f ms "
+                 "more than at the last start): window restarted", t_ns, (self.td_applied_s + td) * 1e3,
+                 sigma * 1e3, (held - self._td_anchor) * 1e3)
+        self.lm.reset()
+        for src in self.sources:
+            src.reset()
+        try:
+            self._restart(k, InitialState(t_ns, T, v, b, "td re-anchor"), T_b_c, td, None, priors=g)
+        except RuntimeError as exc:
+            self._recover(exc, k, k, gtsam.NavState(T, v), b, t_ns)
+
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
         return self.values.atPose3(graph.EXTRINSIC)
+
+    def td_obs(self, frame: Any) -> float:
+        """The part of the td variable the time of ``frame`` (a ``FramePacket``: ``t_ns``
+        = stamp + the sync layer's offset for it) already holds: that offset minus
+        ``td_applied_s`` (s); 0 for anything else. Non-zero once the sync layer applies
+        the fed-back estimate (``CalibConfig.td_feedback_s``)."""
+        t, stamp = getattr(frame, "t_ns", None), getattr(frame, "stamp_ns", None)
+        if t is None or stamp is None:
+            return 0.0
+        return (int(t) - int(stamp)) * 1e-9 - self.td_applied_s
 
     def td(self) -> float:
         """Total camera-to-IMU offset (s): the sync layer's constant plus the estimate."""

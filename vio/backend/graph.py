@@ -159,10 +159,12 @@ def _cam0_shifts(track: Track, frames: list[int], obs: list, vel: np.ndarray | N
 
 
 def _row_offsets(obs: list, line_time_s: float) -> np.ndarray:
-    """Rolling-shutter delay of each observation's row (s): ``row / ROWS * t_readout``
-    with ``t_readout = ROWS * line_time`` (seed 004); 0 when the row is unknown."""
+    """Time offset of each observation (s): the rolling-shutter delay of its row,
+    ``row / ROWS * t_readout`` with ``t_readout = ROWS * line_time`` (seed 004; 0 when the
+    row is unknown), minus the td its keyframe time already holds (``Obs.td_obs``)."""
     rows = np.array([o.row for o in obs], float)
-    return np.where(np.isfinite(rows), rows * line_time_s, 0.0)
+    td_obs = np.array([o.td_obs for o in obs], float)
+    return np.where(np.isfinite(rows), rows * line_time_s, 0.0) - td_obs
 
 
 def _shifted(track: Track, f: int, td: float) -> np.ndarray:

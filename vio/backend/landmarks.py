@@ -15,13 +15,17 @@ import numpy as np
 @dataclass(frozen=True)
 class Obs:
     """One observation: normalized coordinates (2,), velocity (2,) 1/s, pixel row;
-    ``right_uv`` / ``right_velocity``: the same point in cam1 (None without stereo)."""
+    ``right_uv`` / ``right_velocity``: the same point in cam1 (None without stereo);
+    ``td_obs`` (s): the part of the td variable its keyframe's time already holds (the
+    sync layer's offset for this frame minus the estimator's constant ``td_applied_s``),
+    so the observation is ``td - td_obs`` after its keyframe."""
 
     uv: np.ndarray
     velocity: np.ndarray
     row: float
     right_uv: np.ndarray | None = None
     right_velocity: np.ndarray | None = None
+    td_obs: float = 0.0
 
 
 @dataclass

@@ -48,6 +48,9 @@ class LandmarkManager:
 
     # ------------------------------------------------------------ bookkeeping
     def observe(self, k: int, fr: FeatureFrame) -> None:
+        """Append keyframe ``k``'s observations, with the td its time holds (``Obs.td_obs``,
+        from ``KeyframeRates.td_obs``)."""
+        td_obs = self.est.rates.td_obs(k)
         right = fr.right_uv if fr.right_uv is not None else np.full((len(fr.ids), 2), np.nan)
         rvel = fr.right_velocity if fr.right_velocity is not None else np.zeros((len(fr.ids), 2))
         for lid, uv, vel, row, ruv, rv in zip(fr.ids, fr.uv, fr.velocity, fr.row, right, rvel):
@@ -58,7 +61,7 @@ class LandmarkManager:
             has_r = bool(np.all(np.isfinite(ruv)))
             tr.obs[k] = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row),
                             np.asarray(ruv, float) if has_r else None,
-                            np.asarray(rv, float) if has_r else None)
+                            np.asarray(rv, float) if has_r else None, float(td_obs))
 
     def n_active(self) -> int:
         return sum(1 for t in self.tracks.values() if t.key is not None)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -51,6 +52,12 @@ class TrackGenConfig:
     ``gt_rot_sigma_rad``; the IMU with its sensor.yaml densities times
     ``gt_imu_noise_scale``, 1 = the datasheet) instead of the raw ground truth, whose time
     shift (up to about 1 ms) and jitter against the gyro a real camera would not see.
+    ``selection``: how new tracks are picked among the visible candidates, ``"grid"`` (one
+    per free image cell first, like a detector with non-maximum suppression) or
+    ``"random"`` (uniform over the visible points). ``pose_interp`` (raw ground truth
+    only): ``"slerp"`` (position linear, rotation slerp between the bracketing rows) or
+    ``"nearest"`` (the nearest row, as a cruder generator might). ``vio.sim.variants``
+    names whole other generators built from these settings (``vio tracks --variant``).
     """
 
     start_s: float = 0.0
@@ -83,6 +90,8 @@ class TrackGenConfig:
     gt_pos_sigma_m: float = 0.002
     gt_rot_sigma_rad: float = 0.005
     gt_imu_noise_scale: float = 1.0
+    selection: Literal["grid", "random"] = "grid"
+    pose_interp: Literal["slerp", "nearest"] = "slerp"
 
     def __post_init__(self) -> None:
         checks = {
@@ -101,6 +110,8 @@ class TrackGenConfig:
             "0 < max_incidence_deg <= 90": 0 < self.max_incidence_deg <= 90,
             "gt sigmas > 0": self.gt_pos_sigma_m > 0 and self.gt_rot_sigma_rad > 0,
             "gt_imu_noise_scale > 0": self.gt_imu_noise_scale > 0,
+            "selection in (grid, random)": self.selection in ("grid", "random"),
+            "pose_interp in (slerp, nearest)": self.pose_interp in ("slerp", "nearest"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -204,6 +215,8 @@ def _visible(cfg: TrackGenConfig, cam: CameraCalib, pts: np.ndarray, nrm: np.nda
 def _pick_new(cand: np.ndarray, kept: np.ndarray, px: np.ndarray, need: int, cam: CameraCalib,
               cfg: TrackGenConfig, rng: np.random.Generator) -> np.ndarray:
     """Choose ``need`` new points from ``cand``: first one per image cell not holding a kept track."""
+    if cfg.selection == "random":
+        return rng.permutation(cand)[:need]
     gx, gy = cfg.grid
 
     def cell(idx: np.ndarray) -> np.ndarray:
@@ -330,8 +343,7 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     rng_room, rng_track, rng_noise, rng_out = (np.random.default_rng(s) for s in seeds)
     pts, nrm = make_room(gt_p, cfg, rng_room)
     fused = _fused_truth(src, cfg, imu, gt, gt_p, gt_q, t_ns, td) if cfg.imu_consistent else None
-    p_w_b, R_w_b = (fused.at(t_ns + td) if fused is not None
-                    else interpolate_poses(gt.t_ns, gt_p, gt_q, t_ns + td))
+    p_w_b, R_w_b = fused.at(t_ns + td) if fused is not None else _raw_poses(cfg, gt.t_ns, gt_p, gt_q, t_ns + td)
     R_b_c, t_b_c = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
     R_w_c, p_w_c = R_w_b @ R_b_c, p_w_b + R_w_b @ t_b_c
     frame, point, ids, uv_true, px, n_vis = _track(cfg, cam, pts, nrm, R_w_c, p_w_c, rng_track)
@@ -363,6 +375,16 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
         gt_rows = (fused.t_ns, fused.euroc_values())
     write_outputs(src, out, res, gt, gt_tum, imu, truth, gt_rows)
     return res
+
+
+def _raw_poses(cfg: TrackGenConfig, gt_t: np.ndarray, p: np.ndarray, q: np.ndarray,
+               t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Body poses (p_w (K, 3), R_w_b (K, 3, 3)) at ``t_ns`` from the raw ground-truth rows."""
+    if cfg.pose_interp == "nearest":
+        i = np.clip(np.searchsorted(gt_t, t_ns), 1, len(gt_t) - 1)
+        i -= (t_ns - gt_t[i - 1]) < (gt_t[i] - t_ns)
+        t_ns = gt_t[i]
+    return interpolate_poses(gt_t, p, q, t_ns)
 
 
 def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,

@@ -1,7 +1,8 @@
 """``vio tracks SRC OUT``: synthetic feature tracks from a real IMU + ground-truth sequence.
 
-Settings come from ``TrackGenConfig`` defaults, then ``--config FILE`` (YAML with
-TrackGenConfig keys, strict), then the individual options below.
+Settings come from ``TrackGenConfig`` defaults, then ``--variant NAME`` (a named other
+generator, ``vio.sim.variants.VARIANTS``), then ``--config FILE`` (YAML with TrackGenConfig
+keys, strict), then the individual options below.
 """
 
 from __future__ import annotations
@@ -14,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vio.config import from_dict, load
+from vio.config import from_dict, read_yaml
 from vio.errors import ConfigError, DataError
 from vio.sim.tracks import TrackGenConfig, generate_tracks
+from vio.sim.variants import VARIANTS
 
 # option dest -> TrackGenConfig field
 _OVERRIDES = {"start": "start_s", "seconds": "duration_s", "td": "td_s", "seed": "seed",
@@ -32,6 +34,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("src", type=Path,
                    help="EuRoC folder (mav0/ with imu0, ground truth, cam0/sensor.yaml)")
     p.add_argument("out", type=Path, help="output folder (writes OUT/mav0, OUT/sim_truth.yaml)")
+    p.add_argument("--variant", choices=sorted(VARIANTS),
+                   help="a named generator variant (default: ours); --config and options override it")
     p.add_argument("--config", type=Path, help="YAML file with TrackGenConfig keys")
     p.add_argument("--start", type=float, help="excerpt start, s after the first GT row")
     p.add_argument("--seconds", type=float, help="excerpt duration, s (default: to the end)")
@@ -48,8 +52,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def config_from_args(args: argparse.Namespace) -> TrackGenConfig:
-    """Defaults <- ``--config`` file <- explicit options (strict: bad values raise ConfigError)."""
-    cfg = load(TrackGenConfig, args.config) if args.config else TrackGenConfig()
+    """Defaults <- ``--variant`` <- ``--config`` file <- explicit options (strict: bad values
+    raise ConfigError)."""
+    variant = dict(VARIANTS[args.variant]) if getattr(args, "variant", None) else {}
+    if args.config:
+        data = read_yaml(args.config) or {}
+        cfg = from_dict(TrackGenConfig, {**variant, **data} if isinstance(data, dict) else data,
+                        str(args.config))
+    else:
+        cfg = from_dict(TrackGenConfig, variant, f"variant {args.variant}")
     over = {f: getattr(args, a) for a, f in _OVERRIDES.items() if getattr(args, a, None) is not None}
     if not over:
         return cfg
