@@ -34,7 +34,7 @@ def _run(root, **calib):
 
 
 def test_td_reanchors_once_after_the_feedback_and_ends_near_the_truth(v2_td25, caplog):
-    with caplog.at_level(logging.INFO, logger="vio.backend.estimator"):
+    with caplog.at_level(logging.INFO, logger="vio.backend.td_reanchor"):
         res, ate = _run(v2_td25)
     assert caplog.text.count("td re-anchored") == 1
     assert res.restarts == 0 and res.recoveries == 0
@@ -43,7 +43,7 @@ def test_td_reanchors_once_after_the_feedback_and_ends_near_the_truth(v2_td25, c
 
 
 def test_td_reanchoring_off(v2_td25, caplog):
-    with caplog.at_level(logging.INFO, logger="vio.backend.estimator"):
+    with caplog.at_level(logging.INFO, logger="vio.backend.td_reanchor"):
         res, _ = _run(v2_td25, td_reanchor_s=0.0)
     assert "td re-anchored" not in caplog.text
     assert abs(res.outputs[-1].td_s - 0.025) < 0.003

@@ -213,7 +213,7 @@ class CalibConfig:
 
     ``td_reanchor_s``: once the sync layer applies this much more of the fed-back td than at
     the window's last (re)start, and td is known to ``td_reanchor_sigma_s`` (1 sigma), the
-    window restarts once at the current state and td (``Estimator._maybe_reanchor_td``;
+    window restarts once at the current state and td (``vio.backend.td_reanchor``;
     landmarks re-triangulated, td prior ``td_sigma`` again): the td information the window's
     marginal carries was gathered while the remainder left to the td variable was large, and
     there the regressor's noise attenuates it (``CalibConfig`` above); it never washes out,

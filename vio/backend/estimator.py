@@ -25,6 +25,7 @@ from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.regauge import ScaleRefiner
+from vio.backend.td_reanchor import maybe_reanchor_td
 from vio.backend.tracks import LandmarkManager
 from vio.imu import KeyframeRates, bridge_params, combined_params, integrate, integrate_still
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
@@ -358,38 +359,8 @@ class Estimator:
         self._restart(self.k, state, T_b_c, td, None, init)
 
     def _maybe_reanchor_td(self) -> None:
-        """Restart the window at the current state and td once the sync layer holds
-        ``td_reanchor_s`` more of td than at the last (re)start (and has caught up with the
-        estimate) and td's sigma is below ``td_reanchor_sigma_s`` (``CalibConfig``)."""
-        cc, held = self.cfg.calib, self.rates.td_obs(self.k)
-        if (cc.td_reanchor_s <= 0 or abs(held - self._td_anchor) < cc.td_reanchor_s
-                or abs(self.td() - self.td_applied_s - held) >= max(cc.td_feedback_s, 1e-4)):
-            return     # not moved enough yet, or the feedback still catching up
-        k, (T, v, b) = self.k, self.latest()
-        cov, noise = self.smoother.marginalCovariance, gtsam.noiseModel.Gaussian.Covariance
-        try:
-            sigma = float(np.sqrt(cov(graph.TD)[0, 0]))
-            if not sigma < cc.td_reanchor_sigma_s:
-                return
-            g = gtsam.NonlinearFactorGraph()   # the state keeps its marginal, td loses its own
-            g.add(gtsam.PriorFactorPose3(X(k), T, noise(cov(X(k)))))
-            g.add(gtsam.PriorFactorVector(V(k), v, noise(cov(V(k)))))
-            g.add(gtsam.PriorFactorConstantBias(B(k), b, noise(cov(B(k)))))
-        except (RuntimeError, ValueError):
-            return
-        T_b_c, td = self.values.atPose3(graph.EXTRINSIC), float(self.values.atVector(graph.TD)[0])
-        t_ns = self.kf_t[k]
-        self.td_reanchors += 1
-        log.info("t=%d ns: td re-anchored at %.2f ms (sigma %.2f ms; the sync layer applies %.2f ms "
-                 "more than at the last start): window restarted", t_ns, (self.td_applied_s + td) * 1e3,
-                 sigma * 1e3, (held - self._td_anchor) * 1e3)
-        self.lm.reset()
-        for src in self.sources:
-            src.reset()
-        try:
-            self._restart(k, InitialState(t_ns, T, v, b, "td re-anchor"), T_b_c, td, None, priors=g)
-        except RuntimeError as exc:
-            self._recover(exc, k, k, gtsam.NavState(T, v), b, t_ns)
+        """``vio.backend.td_reanchor.maybe_reanchor_td`` (a window restart at a fed-back td)."""
+        maybe_reanchor_td(self)
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:
