@@ -23,6 +23,7 @@ Huber on sqrt(w) r. The right image's affine ``ab_right`` is a constant of the h
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -31,7 +32,7 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.photometric import HostPatch, PhotometricParams, Pinhole
-from factors.photometric_kernel import DARK, SATURATED, host_system, square_root_kernel
+from factors.photometric_kernel import DARK, SATURATED, _njit, host_system
 
 try:
     from numba.typed import List
@@ -136,6 +137,46 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        T_b_c.translation(), ab_h, ab_t, w0, st, K1, T_rl.rotation().matrix(),
                        T_rl.translation(), ab_r, w0 * params.stereo_weight, stereo is not None, hk,
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update)
+
+
+@_njit
+def square_root_kernel(H, g, E, rel_eps, damp):
+    """(r (n + 1,), J (n + 1, n)) with J^T J = H + damp diag(H) + eps I, J^T r = g,
+    0.5 |r|^2 = max(E, .): Cholesky of that = L L^T (eps = rel_eps * max diag H, for the
+    gauge directions; damp a Marquardt damping of the factor's own step),
+    J = L^T, r = L^-1 g, and a last row sqrt(2 E - |L^-1 g|^2) with a zero Jacobian."""
+    n = H.shape[0]
+    dmax = 0.0
+    for i in range(n):
+        dmax = max(dmax, H[i, i])
+    eps = rel_eps * max(dmax, 1e-300)
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = H[j, j] * (1.0 + damp) + eps
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        d = math.sqrt(s) if s > eps else math.sqrt(eps)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = H[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    r = np.zeros(n + 1)
+    for i in range(n):
+        s = g[i]
+        for k in range(i):
+            s -= L[i, k] * r[k]
+        r[i] = s / L[i, i]
+    rr = 0.0
+    for i in range(n):
+        rr += r[i] * r[i]
+    r[n] = math.sqrt(max(2.0 * E - rr, 0.0))
+    J = np.zeros((n + 1, n))
+    for i in range(n):
+        for j in range(i, n):
+            J[i, j] = L[j, i]
+    return r, J
 
 
 def square_root(H: np.ndarray, g: np.ndarray, E: float, rel_eps: float = 1e-9, damp: float = 0.0
