@@ -39,15 +39,7 @@ def gyro_bias(pims: list, pairs: list[tuple[int, int, np.ndarray]], iters: int =
         return np.zeros(3)
 
     def res(bg: np.ndarray) -> np.ndarray:
-        b = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
-        dR = [p.predict(gtsam.NavState(), b).attitude() for p in pims]
-        out = []
-        for i, j, R in pairs:
-            chain = gtsam.Rot3()
-            for k in range(i, j):
-                chain = chain.compose(dR[k])
-            out.append(gtsam.Rot3.Logmap(chain.between(gtsam.Rot3(R))))
-        return np.concatenate(out)
+        return _pair_errors(pims, pairs, bg).ravel()
 
     bg = np.zeros(3)
     for _ in range(iters):
@@ -106,8 +98,9 @@ def window_rotations(features: tuple, T_b_c: gtsam.Pose3, fx: float, spans: tupl
     return out
 
 
-def _pair_residuals(pims: list, pairs: list[tuple[int, int, np.ndarray]], bg: np.ndarray) -> np.ndarray:
-    """Rotation residual angles (rad) of ``pairs`` at gyro bias ``bg``."""
+def _pair_errors(pims: list, pairs: list[tuple[int, int, np.ndarray]], bg: np.ndarray) -> np.ndarray:
+    """(len(pairs), 3) ``Log(dR_ij(bg)^T R_bi_bj)`` of ``pairs`` at gyro bias ``bg``
+    (rad), ``dR_ij`` the chained preintegrated rotations."""
     b = gtsam.imuBias.ConstantBias(np.zeros(3), np.asarray(bg, float))
     dR = [p.predict(gtsam.NavState(), b).attitude() for p in pims]
     out = []
@@ -115,8 +108,13 @@ def _pair_residuals(pims: list, pairs: list[tuple[int, int, np.ndarray]], bg: np
         chain = gtsam.Rot3()
         for k in range(i, j):
             chain = chain.compose(dR[k])
-        out.append(np.linalg.norm(gtsam.Rot3.Logmap(chain.between(gtsam.Rot3(R)))))
-    return np.array(out)
+        out.append(gtsam.Rot3.Logmap(chain.between(gtsam.Rot3(R))))
+    return np.array(out).reshape(-1, 3)
+
+
+def _pair_residuals(pims: list, pairs: list[tuple[int, int, np.ndarray]], bg: np.ndarray) -> np.ndarray:
+    """Rotation residual angles (rad) of ``pairs`` at gyro bias ``bg``."""
+    return np.array([np.linalg.norm(e) for e in _pair_errors(pims, pairs, bg)])
 
 
 def robust_gyro_bias(pims: list, pairs: list[tuple[int, int, np.ndarray]], max_bias: float,
