@@ -32,7 +32,8 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.photometric import HostPatch, PhotometricParams, Pinhole
-from factors.photometric_kernel import DARK, SATURATED, _njit, host_system
+from factors.jit import njit as _njit
+from factors.photometric_kernel import DARK, SATURATED, host_system
 
 try:
     from numba.typed import List

@@ -46,6 +46,7 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
+from factors.jit import njit as _njit
 
 MODELS = ("pinhole", "sphere")
 BEHIND_CAMERA_RESIDUAL = 2.0
@@ -54,15 +55,6 @@ MIN_COS = 1e-3
 """Pinhole cheirality threshold on ``Q_z / |Q|``."""
 MIN_NORM = 1e-12
 """Sphere degeneracy threshold on ``|Q|`` (``|Q| ~ |m_i|`` >= 1 for sane states)."""
-
-try:
-    from numba import njit as _numba_njit
-
-    def _njit(fn):  # noqa: D103 - compile once, cache on disk next to this module
-        return _numba_njit(cache=True, nogil=True)(fn)
-except ImportError:  # pragma: no cover - without numba the kernel runs as plain Python
-    def _njit(fn):  # noqa: D103
-        return fn
 
 
 def check_model(model: str) -> str:

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from factors.jit import njit as _njit
+
 HUBER_K = 1.345
 """Huber threshold for 95% efficiency under Gaussian noise (seed 003)."""
 CAUCHY_C = 2.3849
@@ -25,15 +27,6 @@ CAUCHY_C = 2.3849
 MAD_SCALE = 1.4826
 """``1 / Phi^-1(3/4)``: sigma = MAD_SCALE * median|r| for Gaussian r (seed 003)."""
 KERNELS = ("none", "huber", "cauchy")
-
-try:
-    from numba import njit as _numba_njit
-
-    def _njit(fn):  # noqa: D103
-        return _numba_njit(cache=True, nogil=True)(fn)
-except ImportError:  # pragma: no cover - without numba it runs as plain Python
-    def _njit(fn):  # noqa: D103
-        return fn
 
 
 def huber_weight(s: np.ndarray, k: float = HUBER_K) -> np.ndarray:

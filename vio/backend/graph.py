@@ -15,6 +15,7 @@ import numpy as np
 
 from factors.landmark import landmark_anchor_jacobian, landmark_factor, landmark_residual, make_track
 from factors.anchor_noise import AnchorWhitening
+from factors.jit import njit as _njit
 from factors.track_kernel import whitening
 from factors.reanchor import depth_transfer_factor
 from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis
@@ -25,14 +26,6 @@ from vio.backend.init import InitialState
 from vio.backend.landmarks import Track
 from vio.backend.td_velocity import predicted_velocities
 
-try:
-    from numba import njit as _numba_njit
-
-    def _njit(fn):  # noqa: D103 - compiled once, cached on disk
-        return _numba_njit(cache=True, nogil=True)(fn)
-except ImportError:  # pragma: no cover - plain Python without numba
-    def _njit(fn):  # noqa: D103
-        return fn
 
 X = gtsam.symbol_shorthand.X
 V = gtsam.symbol_shorthand.V

@@ -12,14 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:
-    from numba import njit as _numba_njit
-
-    def _njit(fn):  # noqa: D103 - compiled once, cached on disk
-        return _numba_njit(cache=True, nogil=True)(fn)
-except ImportError:  # pragma: no cover - plain Python without numba
-    def _njit(fn):  # noqa: D103
-        return fn
+from factors.jit import njit as _njit
 
 
 @_njit
