@@ -35,14 +35,7 @@ import math
 
 import numpy as np
 
-try:
-    from numba import njit as _numba_njit
-
-    def _njit(fn):  # noqa: D103
-        return _numba_njit(cache=True, nogil=True, fastmath=False)(fn)
-except ImportError:  # pragma: no cover
-    def _njit(fn):  # noqa: D103
-        return fn
+from factors.jit import njit as _njit
 
 MIN_Z = 1e-6
 MAX_LOG_GAIN = 5.0
@@ -71,9 +64,10 @@ def sample(stack, u, v, out):
 
 
 @_njit
-def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
+def _warp_any(f0, f1, f2, rho, R, t, K, stack, smp, dq):
     """Target pixel of the scaled point q = R f + rho t; fills smp = [I, gx, gy] and
-    dq = dr/dq (3,) and returns (ok, q0, q1, q2, u, v)."""
+    dq = dr/dq (3,) and returns (ok, q0, q1, q2, u, v); ok: in front of the camera and
+    inside the valid image area, whatever the intensity."""
     q0 = R[0, 0] * f0 + R[0, 1] * f1 + R[0, 2] * f2 + rho * t[0]
     q1 = R[1, 0] * f0 + R[1, 1] * f1 + R[1, 2] * f2 + rho * t[1]
     q2 = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 + rho * t[2]
@@ -81,7 +75,7 @@ def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
         return False, q0, q1, q2, 0.0, 0.0
     u = K[0] * q0 / q2 + K[2]
     v = K[1] * q1 / q2 + K[3]
-    if not sample(stack, u, v, smp) or smp[0] >= SATURATED or smp[0] <= DARK:
+    if not sample(stack, u, v, smp):
         return False, q0, q1, q2, u, v
     gu = smp[1] * K[0] / q2
     gv = smp[2] * K[1] / q2
@@ -89,6 +83,13 @@ def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
     dq[1] = gv
     dq[2] = -(gu * q0 + gv * q1) / q2
     return True, q0, q1, q2, u, v
+
+
+@_njit
+def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
+    """:func:`_warp_any`, not ok on a clipped target sample (>= ``SATURATED``, <= ``DARK``)."""
+    ok, q0, q1, q2, u, v = _warp_any(f0, f1, f2, rho, R, t, K, stack, smp, dq)
+    return ok and not (smp[0] >= SATURATED or smp[0] <= DARK), q0, q1, q2, u, v
 
 
 @_njit

@@ -3,9 +3,12 @@ photometric residual of keyframe points in a new frame, its whitened rows and th
 Jacobian with respect to the new frame's pose and affine brightness, in one pass.
 
 Same arithmetic as ``factors.photometric.temporal_eval`` with the host at the identity
-and T_b_c = I (the keyframe camera is the reference) followed by ``sqrt_weights``:
+and T_b_c = I (the keyframe camera is the reference) followed by ``sqrt_weights``; the
+warp is the host factor's (``factors.photometric_kernel._warp_any``) without its test
+for clipped pixels:
 
-    q = R f + rho t  ((R, t) = T_kf_new^-1, keyframe camera -> new camera),  r = I_new(pi(q)) - b_j - s (I_ref - b_i),  s = e^(a_j - a_i),
+    q = R f + rho t  ((R, t) = T_kf_new^-1, keyframe camera -> new camera),
+    r = I_new(pi(q)) - b_j - s (I_ref - b_i),  s = e^(a_j - a_i),
     W = c^2 / (c^2 + |grad I_ref|^2) / (2 sigma_I^2 + (dr/drho)^2 V),
     row = sqrt(W) [r ; (g x q, -rho g) ; -s (I_ref - b_i), -1]     (g = dr/dq),
 
@@ -21,7 +24,8 @@ import math
 
 import numpy as np
 
-from factors.photometric_kernel import MIN_Z, _njit, sample
+from factors.jit import njit as _njit
+from factors.photometric_kernel import _warp_any
 
 
 @_njit
@@ -32,6 +36,7 @@ def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b
     ``b_i``, ``b_j`` the offsets; ``var`` (N,) inverse-depth variances (zeros: no V term)."""
     N, P = Ii.shape
     smp = np.empty(3)
+    dq = np.empty(3)
     for p in range(N):
         rp = rho[p]
         for k in range(P):
@@ -43,18 +48,12 @@ def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b
                 J[row, c] = 0.0
             if not hvalid[p, k]:
                 continue
-            f0, f1, f2 = bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2]
-            q0 = R[0, 0] * f0 + R[0, 1] * f1 + R[0, 2] * f2 + rp * t[0]
-            q1 = R[1, 0] * f0 + R[1, 1] * f1 + R[1, 2] * f2 + rp * t[1]
-            q2 = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 + rp * t[2]
-            if q2 <= MIN_Z:
-                continue
-            if not sample(stack, K[0] * q0 / q2 + K[2], K[1] * q1 / q2 + K[3], smp):
+            ok, q0, q1, q2, _u, _v = _warp_any(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2],
+                                               rp, R, t, K, stack, smp, dq)
+            if not ok:
                 continue
             valid[p, k] = True
-            gu = smp[1] * K[0] / q2
-            gv = smp[2] * K[1] / q2
-            gz = -(gu * q0 + gv * q1) / q2
+            gu, gv, gz = dq[0], dq[1], dq[2]
             h = s * (Ii[p, k] - b_i)
             r = smp[0] - b_j - h
             r_raw[p, k] = r
