@@ -130,9 +130,10 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
     for img in (targets if M else [st]):
         imgs.append(img)
     rho, alive = (pts.rho, pts.alive) if update else (pts.rho.copy(), pts.alive.copy())
-    tm = pts.tmask[:, :M] if M else np.zeros((len(pts.rho), 0), bool)
-    if not update:
-        tm = tm.copy()
+    # the whole (N, M_max) mask, C-contiguous, whatever M (the kernel reads slots < M):
+    # a [:, :M] view would be a second Numba signature, ~8 s more to compile on a fresh
+    # install (strided for M < M_max, contiguous for M = M_max)
+    tm = pts.tmask if update else pts.tmask.copy()
     return host_system(pts.patch.bearing, pts.patch.intensity, pts.wg, pts.patch.valid, rho, alive,
                        tm, imgs, _kvec(K), R_ji, t_ji, R_jb, T_b_c.rotation().matrix(),
                        T_b_c.translation(), ab_h, ab_t, w0, st, K1, T_rl.rotation().matrix(),

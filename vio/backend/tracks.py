@@ -243,7 +243,7 @@ class LandmarkManager:
                 ruv[i], rmeas[i] = obs[i].right_uv, obs[i].right_velocity
         if self._rig_c1 is None and self.est.T_c0_c1 is not None:
             self._rig_c1 = (np.ascontiguousarray(self.est.T_c0_c1.rotation().matrix().T),
-                            np.ascontiguousarray(self.est.T_c0_c1.translation()))
+                            np.array(self.est.T_c0_c1.translation()))   # writable: one Numba signature
         R10, t01 = self._rig_c1 if self._rig_c1 is not None else (np.eye(3), np.zeros(3))
         vel, rvel = np.empty((n, 2)), np.empty((n, 2))
         vc = self.est.cfg.vision

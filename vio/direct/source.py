@@ -136,12 +136,9 @@ class PhotometricSource:
         pts = HostPoints.create(make_host_patch(kd.left, kd.uv[:n], self.rig.K0), kd.idepth[:n],
                                 self.cfg.points.grad_c, self.cfg.points.max_targets)
         stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
-        # one target and all of them: the (point, target) mask is then a strided and a
-        # contiguous slice, two Numba signatures (the second one compiled after the start
-        # stalled a keyframe by 6-11 s on a fresh install)
-        for m in sorted({1, self.cfg.points.max_targets}):
-            fn = host_residual_fn(pts, [kd.left._stack] * m, self.rig.K0, self.rig.T_b_c, self.params, stereo)
-            fn([gtsam.Pose3(), np.zeros(2)] * (m + 1))
+        # one signature serves every target count (the kernel gets the whole mask)
+        fn = host_residual_fn(pts, [kd.left._stack], self.rig.K0, self.rig.T_b_c, self.params, stereo)
+        fn([gtsam.Pose3(), np.zeros(2)] * 2)
 
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
