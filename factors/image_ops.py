@@ -18,6 +18,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from factors.jit import njit
+
 GradientMode = Literal["central", "exact"]
 
 
@@ -39,6 +41,22 @@ def central_gradient(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     gx[:, 1:-1] = 0.5 * (img[:, 2:] - img[:, :-2])
     gy[1:-1, :] = 0.5 * (img[2:, :] - img[:-2, :])
     return gx, gy
+
+
+@njit
+def _gradient_stack(img):
+    """(H, W, 3) [I, gx, gy] of a float64 (H, W) image: ``central_gradient`` in one
+    pass (np.stack of the three planes cost ~2 ms per 752x480 image, 10 per keyframe)."""
+    H, W = img.shape
+    out = np.zeros((H, W, 3))
+    for v in range(H):
+        for u in range(W):
+            out[v, u, 0] = img[v, u]
+            if 0 < u < W - 1:
+                out[v, u, 1] = 0.5 * (img[v, u + 1] - img[v, u - 1])
+            if 0 < v < H - 1:
+                out[v, u, 2] = 0.5 * (img[v + 1, u] - img[v - 1, u])
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,9 +83,9 @@ class BilinearImage:
         img = np.asarray(self.image, dtype=np.float64)
         if img.ndim != 2 or min(img.shape) < 4:
             raise ValueError(f"BilinearImage needs a (H, W) image with H, W >= 4, got {img.shape}")
-        gx, gy = central_gradient(img)
+        img = np.ascontiguousarray(img)
         object.__setattr__(self, "image", img)
-        object.__setattr__(self, "_stack", np.ascontiguousarray(np.stack([img, gx, gy], axis=-1)))
+        object.__setattr__(self, "_stack", _gradient_stack(img))
 
     @property
     def width(self) -> int:
