@@ -70,12 +70,12 @@ MODE_DEFAULTS: dict[str, dict] = {
     mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
     for mode in ("mono", "stereo", "hybrid")
 }
-# photometric points: direct relinearizes at every update (see vio.direct.mode); hybrid,
-# held by its KLT landmarks too, every 10th as the other modes (real MH_01 5.9 -> 5.8 mm,
-# renders seed 14/21 7.2/2.7 -> 7.1/2.7 mm, ~15% less CPU: the outlier update no longer
-# relinearizes every host)
-_PHOTOMETRIC_SOLVER = {"relinearize_skip": 1, "relinearize_threshold": 0.005}
-MODE_DEFAULTS["hybrid"]["backend"]["solver"] = {"relinearize_threshold": 0.005}
+# photometric modes: relinearization checked every 10th update as in the other modes,
+# threshold 0.005 (see vio.direct.mode); direct at every update measured the same ATE
+# (real MH_01 5.1 mm, from frame 100 5.3 / 5.4 mm, renders seed 3/14/21 2.5/6.2/8.4 mm)
+# for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8 mm, renders 7.2/2.7 -> 7.1/2.7 mm
+_PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005}
+MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
