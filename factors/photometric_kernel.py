@@ -102,12 +102,11 @@ def _huber(e2, k):
 
 
 @_njit
-def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k):
+def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k, smp, dq):
     """One term of point p at rho, residual I(warp) - b - s I_host (s: gain e^(a_j - a_h),
-    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid)."""
+    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid). ``smp``, ``dq``
+    (3,): scratch (allocated once per kernel call, not per term)."""
     P = bearing.shape[1]
-    smp = np.empty(3)
-    dq = np.empty(3)
     Hrr = 0.0
     gr = 0.0
     cost = 0.0
@@ -133,22 +132,24 @@ def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k)
 
 
 @_njit
-def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k):
+def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k, smp, dq):
     """Static stereo of point p at rho (right affine ``ab_r`` relative to the left)."""
     s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w, huber_k)
+    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w, huber_k,
+                      smp, dq)
 
 
 @_njit
-def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k):
+def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k, smp, dq):
     """Temporal term of point p in target m at rho: I_j - b_j - s (I_h - b_h)."""
     s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0, huber_k)
+    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0, huber_k,
+                      smp, dq)
 
 
 @_njit
 def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
-               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max):
+               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max, smp, dq):
     """A few damped Gauss-Newton steps on the inverse depth of point p (poses held)."""
     M = R_ji.shape[0]
     for _ in range(iters):
@@ -156,13 +157,13 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
         gr = 0.0
         if use_stereo:
             a, b, _c, _s, _n = _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                             t_rl, ab_r, st_w, huber_k)
+                                             t_rl, ab_r, st_w, huber_k, smp, dq)
             Hrr += a
             gr += b
         for m in range(M):
             if tmask[p, m]:
                 a, b, _c, _s, _n = _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, imgs[m], K,
-                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
+                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k, smp, dq)
                 Hrr += a
                 gr += b
         if Hrr <= 1e-12:
@@ -180,40 +181,104 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
 def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
                 st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, outlier_rms, iters,
                 rho_min, rho_max):
-    """Pass 1 of :func:`host_system`, one point at a time (~3/4 of the kernel's warps; a
-    numba ``prange`` over the points cost 4x more per call on the shared 2-core machine
-    of the measurements): (refined rho (N,), pattern RMS (N, M) with
-    -1 for a pattern that left the image and inf for one not judged, stereo/depth ok (N,))."""
+    """Pass 1 of :func:`host_system`, one point at a time (a numba ``prange`` over the
+    points cost 4x more per call on the shared 2-core machine of the measurements):
+    (refined rho (N,), stereo/depth ok (N,))."""
     N, P = Ii.shape
-    M = R_ji.shape[0]
     rp = rho.copy()
-    ms = np.full((N, M), np.inf)
     ok_p = alive.copy()
+    smp, dq = np.empty(3), np.empty(3)
     for p in range(N):
         if not alive[p]:
             continue
         rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
                            w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters,
-                           rho_min, rho_max)
+                           rho_min, rho_max, smp, dq)
         if use_stereo:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k)
+                                            t_rl, ab_r, st_w, huber_k, smp, dq)
             if nv < P // 2 or ss > outlier_rms * outlier_rms * nv:
                 ok_p[p] = False
         if rp[p] <= rho_min or rp[p] >= rho_max:
             ok_p[p] = False
+    return rp, ok_p
+
+
+@_njit
+def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c, t_b_c,
+               ab_h, ab_t, w0):
+    """Pass 2 of :func:`host_system`: every (point, target) pair's residuals at the refined
+    depth, stored for pass 3 so the pattern RMS that decides the outliers and the
+    normal equations share one warp per pixel. Returns (rows (N, M, P, 19) =
+    [r, w0 wg, dr/drho, J_host (8), J_target (8)], valid (N, M, P), pattern RMS (N, M):
+    -1 for a pattern that left the image, inf for one not judged)."""
+    N, P = Ii.shape
+    M = R_ji.shape[0]
+    rows = np.empty((N, M, P, 19))
+    valid = np.zeros((N, M, P), np.bool_)
+    ms = np.full((N, M), np.inf)
+    smp, dq, gb, hh = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    for p in range(N):
+        if not ok_p[p]:
+            continue
+        r_p = rp[p]
         nh = 0
         for k in range(P):
             nh += hvalid[p, k]
         for m in range(M):
-            if tmask[p, m]:
-                _a, _b, _c, ss, nv = _temporal_rho(p, m, rp[p], bearing, Ii, wg, hvalid, imgs[m], K,
-                                                   R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
-                if nv == 0:
-                    ms[p, m] = -1.0                   # out of the image: off for good
-                elif nv >= nh - 2:
-                    ms[p, m] = math.sqrt(ss / nv)
-    return rp, ms, ok_p
+            if not tmask[p, m]:
+                continue
+            s = math.exp(min(max(ab_t[m, 0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
+            R, t, Rjb = R_ji[m], t_ji[m], R_jb[m]
+            ss = 0.0
+            nv = 0
+            for k in range(P):
+                if not hvalid[p, k]:
+                    continue
+                f0, f1, f2 = bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2]
+                ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
+                if not ok:
+                    continue
+                row = rows[p, m, k]
+                hI = s * (Ii[p, k] - ab_h[1])
+                r = smp[0] - ab_t[m, 1] - hI
+                ss += r * r
+                nv += 1
+                valid[p, m, k] = True
+                row[0] = r
+                row[1] = w0 * wg[p, k]
+                row[2] = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
+                for i in range(3):      # g_b = dr/dq R_c_b (row vector)
+                    gb[i] = dq[0] * R_b_c[i, 0] + dq[1] * R_b_c[i, 1] + dq[2] * R_b_c[i, 2]
+                qb0 = R_b_c[0, 0] * q0 + R_b_c[0, 1] * q1 + R_b_c[0, 2] * q2 + r_p * t_b_c[0]
+                qb1 = R_b_c[1, 0] * q0 + R_b_c[1, 1] * q1 + R_b_c[1, 2] * q2 + r_p * t_b_c[1]
+                qb2 = R_b_c[2, 0] * q0 + R_b_c[2, 1] * q1 + R_b_c[2, 2] * q2 + r_p * t_b_c[2]
+                row[11] = gb[1] * qb2 - gb[2] * qb1      # J_target: rotation, translation, ab
+                row[12] = gb[2] * qb0 - gb[0] * qb2
+                row[13] = gb[0] * qb1 - gb[1] * qb0
+                row[14] = -r_p * gb[0]
+                row[15] = -r_p * gb[1]
+                row[16] = -r_p * gb[2]
+                row[17] = -hI
+                row[18] = -1.0
+                for i in range(3):      # hh = g_b R_bj_bi
+                    hh[i] = gb[0] * Rjb[0, i] + gb[1] * Rjb[1, i] + gb[2] * Rjb[2, i]
+                fb0 = R_b_c[0, 0] * f0 + R_b_c[0, 1] * f1 + R_b_c[0, 2] * f2 + r_p * t_b_c[0]
+                fb1 = R_b_c[1, 0] * f0 + R_b_c[1, 1] * f1 + R_b_c[1, 2] * f2 + r_p * t_b_c[1]
+                fb2 = R_b_c[2, 0] * f0 + R_b_c[2, 1] * f1 + R_b_c[2, 2] * f2 + r_p * t_b_c[2]
+                row[3] = fb1 * hh[2] - fb2 * hh[1]       # J_host
+                row[4] = fb2 * hh[0] - fb0 * hh[2]
+                row[5] = fb0 * hh[1] - fb1 * hh[0]
+                row[6] = r_p * hh[0]
+                row[7] = r_p * hh[1]
+                row[8] = r_p * hh[2]
+                row[9] = hI
+                row[10] = s
+            if nv == 0:
+                ms[p, m] = -1.0                   # out of the image: off for good
+            elif nv >= nh - 2:
+                ms[p, m] = math.sqrt(ss / nv)
+    return rows, valid, ms
 
 
 @_njit
@@ -231,20 +296,17 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     H = np.zeros((n, n))
     g = np.zeros(n)
     hx = np.zeros(n)
-    Jh = np.zeros(8)
-    Jt = np.zeros(8)
-    smp = np.empty(3)
-    dq = np.empty(3)
-    gb = np.empty(3)
-    hh = np.empty(3)
+    smp, dq = np.empty(3), np.empty(3)
     cost = 0.0
     red = 0.0
     used = 0
-    # pass 1: refined depths, stereo check, pattern RMS of
+    # pass 1: refined depths and stereo check; pass 2: residual rows and pattern RMS of
     # every (point, target)
-    rp, ms, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
-                               ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo,
-                               huber_k, outlier_rms, iters, rho_min, rho_max)
+    rp, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
+                           ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo,
+                           huber_k, outlier_rms, iters, rho_min, rho_max)
+    rows, valid, ms = _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji,
+                                 R_jb, R_b_c, t_b_c, ab_h, ab_t, w0)
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
     # the whole image fits worse (blur, a changed exposure not yet estimated)
     th = np.full(M, outlier_rms)
@@ -252,6 +314,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         col = ms[:, m][ok_p & np.isfinite(ms[:, m]) & (ms[:, m] >= 0.0)]
         if col.size:
             th[m] = max(outlier_rms, 2.0 * np.median(col))
+    # pass 3: normal equations (upper triangle, mirrored at the end), rho eliminated
     for p in range(N):
         if not alive[p]:
             continue
@@ -259,13 +322,12 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
             if update and (rp[p] <= rho_min or rp[p] >= rho_max):
                 alive[p] = False            # depth out of range: for good
             continue                        # stereo misfit: off at this linearization
-        r_p = rp[p]
         Hrr = 0.0
         gr = 0.0
         cp = 0.0
         if use_stereo:
-            a, b, c, ss, nv = _stereo_terms(p, r_p, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl,
-                                            ab_r, st_w, huber_k)
+            a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
+                                            t_rl, ab_r, st_w, huber_k, smp, dq)
             Hrr += a
             gr += b
             cp += c
@@ -282,68 +344,34 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
             if not ms[p, m] <= th[m]:
                 continue                    # misfit or clipped: off at this linearization only
             any_t = True
-            s = math.exp(min(max(ab_t[m, 0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
             o = 8 * (m + 1)
-            R = R_ji[m]
-            t = t_ji[m]
-            Rjb = R_jb[m]
             for k in range(P):
-                if not hvalid[p, k]:
+                if not valid[p, m, k]:
                     continue
-                f0, f1, f2 = bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2]
-                ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
-                if not ok:
-                    continue
-                hI = s * (Ii[p, k] - ab_h[1])
-                r = smp[0] - ab_t[m, 1] - hI
-                w = w0 * wg[p, k]
+                row = rows[p, m, k]
+                r, jr = row[0], row[2]
+                w = row[1]
                 hw, c = _huber(w * r * r, huber_k)
                 w *= hw
                 cp += c
-                for i in range(3):      # g_b = dr/dq R_c_b (row vector)
-                    gb[i] = dq[0] * R_b_c[i, 0] + dq[1] * R_b_c[i, 1] + dq[2] * R_b_c[i, 2]
-                qb0 = R_b_c[0, 0] * q0 + R_b_c[0, 1] * q1 + R_b_c[0, 2] * q2 + r_p * t_b_c[0]
-                qb1 = R_b_c[1, 0] * q0 + R_b_c[1, 1] * q1 + R_b_c[1, 2] * q2 + r_p * t_b_c[1]
-                qb2 = R_b_c[2, 0] * q0 + R_b_c[2, 1] * q1 + R_b_c[2, 2] * q2 + r_p * t_b_c[2]
-                Jt[0] = gb[1] * qb2 - gb[2] * qb1
-                Jt[1] = gb[2] * qb0 - gb[0] * qb2
-                Jt[2] = gb[0] * qb1 - gb[1] * qb0
-                Jt[3] = -r_p * gb[0]
-                Jt[4] = -r_p * gb[1]
-                Jt[5] = -r_p * gb[2]
-                Jt[6] = -hI
-                Jt[7] = -1.0
-                for i in range(3):      # hh = g_b R_bj_bi
-                    hh[i] = gb[0] * Rjb[0, i] + gb[1] * Rjb[1, i] + gb[2] * Rjb[2, i]
-                fb0 = R_b_c[0, 0] * f0 + R_b_c[0, 1] * f1 + R_b_c[0, 2] * f2 + r_p * t_b_c[0]
-                fb1 = R_b_c[1, 0] * f0 + R_b_c[1, 1] * f1 + R_b_c[1, 2] * f2 + r_p * t_b_c[1]
-                fb2 = R_b_c[2, 0] * f0 + R_b_c[2, 1] * f1 + R_b_c[2, 2] * f2 + r_p * t_b_c[2]
-                Jh[0] = fb1 * hh[2] - fb2 * hh[1]
-                Jh[1] = fb2 * hh[0] - fb0 * hh[2]
-                Jh[2] = fb0 * hh[1] - fb1 * hh[0]
-                Jh[3] = r_p * hh[0]
-                Jh[4] = r_p * hh[1]
-                Jh[5] = r_p * hh[2]
-                Jh[6] = hI
-                Jh[7] = s
-                jr = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
                 for i in range(8):
-                    wi = w * Jh[i]
+                    wi = w * row[3 + i]
+                    for j in range(i, 8):
+                        H[i, j] += wi * row[3 + j]
                     for j in range(8):
-                        H[i, j] += wi * Jh[j]
-                        H[i, o + j] += wi * Jt[j]
+                        H[i, o + j] += wi * row[11 + j]
                     g[i] += wi * r
                     hx[i] += wi * jr
-                    wt = w * Jt[i]
-                    for j in range(8):
-                        H[o + i, o + j] += wt * Jt[j]
+                    wt = w * row[11 + i]
+                    for j in range(i, 8):
+                        H[o + i, o + j] += wt * row[11 + j]
                     g[o + i] += wt * r
                     hx[o + i] += wt * jr
                 Hrr += w * jr * jr
                 gr += w * jr * r
         cost += cp
         if update:
-            rho[p] = r_p
+            rho[p] = rp[p]
         if not any_t:
             red += cp - (0.5 * gr * gr / Hrr if Hrr > 1e-12 else 0.0)
             continue
@@ -355,15 +383,12 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
                     continue
                 a = hx[i] * inv
                 g[i] -= a * gr
-                for j in range(n):
+                for j in range(i, n):
                     H[i, j] -= a * hx[j]
             red += cp - 0.5 * gr * gr * inv
         else:
             red += cp
-    # the host-target blocks were filled on one side only
-    for m in range(M):
-        o = 8 * (m + 1)
-        for i in range(8):
-            for j in range(8):
-                H[o + j, i] = H[i, o + j]
+    for i in range(n):
+        for j in range(i + 1, n):
+            H[j, i] = H[i, j]
     return H, g, cost, red, used
