@@ -181,9 +181,13 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
         # hybrid tracks KLT on every frame: in the worker process, like stereo mode (direct
         # needs KLT only until it is initialized, so it stays in this process)
         klt_worker = worker and mode == "hybrid"
-        if klt_worker:   # the worker also sends the decoded images back (PNG decoded once)
+        if worker:
             from vio.overlap import overlapped
-            it = overlapped(ImageStage, args + (True,), it)
+            if klt_worker:   # the worker also sends the decoded images back (PNG decoded once)
+                it = overlapped(ImageStage, args + (True,), it)
+            else:            # direct: the worker decodes the images, KLT (until init) stays here
+                from vio.tracking import DecodeStage
+                it = overlapped(DecodeStage, (2,), it)
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid", klt=not klt_worker)
     if not worker:
         return it, ImageStage(*args)
