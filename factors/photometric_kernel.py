@@ -41,6 +41,9 @@ MIN_Z = 1e-6
 MAX_LOG_GAIN = 5.0
 """Relative log-gains a_j - a_h are clipped to +-5 (x150) so a diverging affine state can
 never overflow exp (gains beyond that are not a camera's exposure change)."""
+RHO_STEP_TOL = 0.05
+"""Depth refinement stops after a step below 0.05 / sqrt(H_rr) (~0.07 standard deviations
+of rho given the poses): a further step would not change the linearization measurably."""
 SATURATED = 250.0
 DARK = 5.0
 """Intensities at or above ``SATURATED`` or at or below ``DARK`` are clipped by the sensor:
@@ -172,8 +175,8 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
         lim = 0.25 * rho + 0.02
         step = min(max(step, -lim), lim)
         rho = min(max(rho + step, rho_min), rho_max)
-        if abs(step) < 1e-6 * rho:
-            break
+        if abs(step) * math.sqrt(Hrr) < RHO_STEP_TOL:
+            break                   # the step was a small fraction of rho's standard deviation
     return rho
 
 
