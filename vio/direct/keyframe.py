@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from factors.image_ops import BilinearImage
+from factors.image_ops import BilinearImage, pyramid
 from factors.photometric import PATTERN, Pinhole
 from vio.direct.config import DirectConfig
 from vio.direct.epipolar import epipolar_search, undistort_pinhole
@@ -73,11 +73,20 @@ class KeyframeData:
     n_selected: int
     in_graph: bool = False
     _ref: TrackingReference | None = None
+    _pyr: tuple[BilinearImage, ...] = ()
+
+    def pyramid(self, levels: int) -> tuple[BilinearImage, ...]:
+        """The left image's pyramid (``vio.direct.trackframe.image_pyramid``; level 0 is
+        ``left``), built once: TrackFrame samples it as the new frame, then as the
+        reference when this keyframe is tracked against."""
+        if len(self._pyr) < levels:
+            self._pyr = (self.left,) + tuple(BilinearImage(im) for im in pyramid(self.image, levels)[1:])
+        return self._pyr[:levels]
 
     def reference(self, ab: np.ndarray, cfg: DirectConfig) -> TrackingReference:
         """TrackFrame reference of this keyframe (built once) with its affine ``ab``."""
         if self._ref is None:
-            self._ref = make_reference(self.image, self.uv, self.idepth, self.K,
+            self._ref = make_reference(self.pyramid(cfg.track.levels), self.uv, self.idepth, self.K,
                                        self.idepth_var, tuple(ab), cfg.track)
         return TrackingReference(self._ref.K, self._ref.patches, self._ref.idepth,
                                  self._ref.idepth_var, np.asarray(ab, float))
@@ -107,7 +116,7 @@ def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarra
     search checks and ``cfg.points`` depth range; estimate the right image's affine."""
     left_img, right_img = rig.undistort(left_raw, right_raw)
     L, R = BilinearImage(left_img), BilinearImage(right_img)
-    sel = select_points(left_img, cfg.select)
+    sel = select_points(left_img, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
     gain = np.log(max(right_img.std(), 1e-3) / max(left_img.std(), 1e-3))
     ep = epipolar_search(L, R, sel.uv, rig.K0, rig.K1, rig.T_c1_c0, cfg.epipolar, (gain, 0.0))
     pc = cfg.points

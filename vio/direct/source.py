@@ -225,7 +225,7 @@ class PhotometricSource:
         T_pred = v.atPose3(X(k))
         T_init = T_w_cp.between(T_pred.compose(T_b_c))
         t0 = time.perf_counter()
-        res = track_frame(prev.reference(ab_p, self.cfg), kd.image, T_init, ab_p, self.cfg.track,
+        res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), T_init, ab_p, self.cfg.track,
                           self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9))
         ms = (time.perf_counter() - t0) * 1e3
         # re-orthonormalized: T_tr = T_w_cp (T_w_cp^-1 T_pred T_b_c) ... composes the
