@@ -101,16 +101,22 @@ def _select_cells(grad, thr, block, border, pot, factors):
         nx[lev] = -(-w // (pot << lev))
     best = np.full((L, ny[0], nx[0]), -1.0)      # level l uses the [:ny[l], :nx[l]] corner
     arg = np.full((L, ny[0], nx[0]), -1, np.int64)
+    col_cell = np.empty((L, w), np.int64)        # cell column of pixel column x, per level
+    for lev in range(L):
+        for x in range(w):
+            col_cell[lev, x] = x // (pot << lev)
     for y in range(h):
         inner_y = border <= y < h - border
+        trow = thr[y // block]
         for x in range(w):
             g = grad[y, x] if inner_y and border <= x < w - border else 0.0
-            t = thr[y // block, x // block]
+            t = trow[x // block]
             for lev in range(L):
-                cy, cx = y // (pot << lev), x // (pot << lev)
-                if g > t * factors[lev] and g > best[lev, cy, cx]:
-                    best[lev, cy, cx] = g
-                    arg[lev, cy, cx] = y * w + x
+                if g > t * factors[lev]:
+                    cy, cx = y // (pot << lev), col_cell[lev, x]
+                    if g > best[lev, cy, cx]:
+                        best[lev, cy, cx] = g
+                        arg[lev, cy, cx] = y * w + x
     idx = np.empty(L * ny[0] * nx[0], np.int64)
     levs = np.empty(L * ny[0] * nx[0], np.int64)
     taken = np.zeros((L, ny[0], nx[0]), np.bool_)  # a cell holds a point of this or a finer level
