@@ -56,12 +56,19 @@ def test_select_cells_matches_reference(seed, pot):
     assert (lev > 0).any() and len(idx) > 10            # the coarse levels fill the flat third
 
 
-def test_block_medians_match_numpy():
-    grad = np.abs(np.random.default_rng(3).normal(0, 10, (70, 101)))
-    med = _block_medians(grad, 16)
+@pytest.mark.parametrize("seed", range(6))
+def test_block_medians_match_numpy(seed):
+    """Exact medians (histogram + sort of the middle bins), ties and clipped blocks included."""
+    rng = np.random.default_rng(seed)
+    grad = np.abs(rng.normal(0, 10, (int(rng.integers(20, 90)), int(rng.integers(20, 120)))))
+    if seed % 2:
+        grad = np.round(grad)                    # many ties, flat (all-equal) blocks
+        grad[:8, :8] = 3.0
+    block = int(rng.integers(3, 17))
+    med = _block_medians(grad, block)
     for by in range(med.shape[0]):
         for bx in range(med.shape[1]):
-            assert med[by, bx] == np.median(grad[by * 16:(by + 1) * 16, bx * 16:(bx + 1) * 16])
+            assert med[by, bx] == np.median(grad[by * block:(by + 1) * block, bx * block:(bx + 1) * block])
 
 
 def test_select_points_invariants_and_given_gradients():

@@ -60,6 +60,8 @@ def _block_medians(grad, block):
     nby, nbx = -(-h // block), -(-w // block)
     med = np.empty((nby, nbx))
     buf = np.empty(block * block)
+    tmp = np.empty(block * block)
+    counts = np.empty(_BINS, np.int64)
     for by in range(nby):
         for bx in range(nbx):
             n = 0
@@ -67,10 +69,49 @@ def _block_medians(grad, block):
                 for x in range(bx * block, min(w, (bx + 1) * block)):
                     buf[n] = grad[y, x]
                     n += 1
-            part = np.partition(buf[:n], n // 2)          # part[n // 2] in place, smaller before
-            lo = part[n // 2] if n % 2 else np.max(part[:n // 2])
-            med[by, bx] = 0.5 * (lo + part[n // 2])
+            lo, hi = _ranks(buf, n, (n - 1) // 2, n // 2, counts, tmp)
+            med[by, bx] = 0.5 * (lo + hi)
     return med
+
+
+_BINS = 64
+
+
+@njit
+def _ranks(buf, n, k0, k1, counts, tmp):
+    """The k0-th and k1-th smallest (0-based, k0 <= k1) of ``buf[:n]``, exactly: a
+    histogram over [min, max] finds the bins holding those ranks, whose few values are
+    then sorted (every value is binned by the same expression, so ranks are consistent)."""
+    mn, mx = buf[0], buf[0]
+    for i in range(1, n):
+        v = buf[i]
+        if v < mn:
+            mn = v
+        elif v > mx:
+            mx = v
+    if mx == mn:
+        return mn, mn
+    nb = counts.shape[0]
+    scale = nb / (mx - mn)
+    counts[:] = 0
+    for i in range(n):
+        counts[min(int((buf[i] - mn) * scale), nb - 1)] += 1
+    b0, below = 0, 0
+    while below + counts[b0] <= k0:
+        below += counts[b0]
+        b0 += 1
+    b1, upto = b0, below + counts[b0]
+    while upto <= k1:
+        b1 += 1
+        upto += counts[b1]
+    m = 0
+    for i in range(n):
+        b = min(int((buf[i] - mn) * scale), nb - 1)
+        if b0 <= b <= b1:
+            tmp[m] = buf[i]
+            m += 1
+    srt = np.sort(tmp[:m])
+    return srt[k0 - below], srt[k1 - below]
 
 
 @njit
