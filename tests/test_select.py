@@ -121,3 +121,33 @@ def test_trackframe_on_a_shared_pyramid_is_identical():
     assert np.array_equal(a.T_kf_new.matrix(), b.T_kf_new.matrix()) and (a.a, a.b, a.rmse) == (b.a, b.b, b.rmse)
     with pytest.raises(ValueError):
         image_pyramid(pyr[:2], 3)
+
+
+def test_build_keyframe_in_the_worker_thread_is_identical():
+    """``build_keyframe(..., background=True)``: the points come from the worker thread,
+    equal to the synchronous build; a failure surfaces when they are read."""
+    import cv2
+    import gtsam
+
+    from vio.direct.config import DirectConfig
+    from vio.direct.keyframe import StereoRig, build_keyframe
+    from vio.io.types import CameraCalib
+
+    rng = np.random.default_rng(2)
+    left = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320)), (0, 0), 1.5)
+    right = np.roll(left, -8, axis=1)                     # fronto-parallel plane, 8 px disparity
+    K = (200.0, 200.0, 160.0, 120.0)
+    cam0 = CameraCalib(gtsam.Pose3(), K, "radial-tangential", (0.0,) * 4, (320, 240))
+    cam1 = CameraCalib(gtsam.Pose3(gtsam.Rot3(), [0.1, 0.0, 0.0]), K, "radial-tangential", (0.0,) * 4, (320, 240))
+    rig, cfg = StereoRig(cam0, cam1), DirectConfig()
+    a = build_keyframe(0, 0, left, right, rig, cfg)
+    b = build_keyframe(0, 0, left, right, rig, cfg, background=True)
+    assert len(a.uv) > 50 and abs(np.median(a.idepth) / (8.0 / (200.0 * 0.1)) - 1) < 0.02
+    for name in ("uv", "idepth", "idepth_var", "ab_right"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    assert a.n_selected == b.n_selected
+    bad = build_keyframe(0, 0, left, right, rig, cfg, background=True)
+    bad._points = type(bad._points)()                     # a future that fails
+    bad._points.set_exception(RuntimeError("worker failed"))
+    with pytest.raises(RuntimeError, match="worker failed"):
+        _ = bad.uv

@@ -9,6 +9,7 @@ Frames: ``uv`` are undistorted pinhole pixels of cam0 (pixel-centre convention);
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import gtsam
@@ -56,9 +57,26 @@ class StereoRig:
                 undistort_pinhole(right, self.cam1.K, self.cam1.distortion, self.cam1.distortion_model))
 
 
+@dataclass(frozen=True, eq=False)
+class KeyframePoints:
+    """The candidate points of a keyframe (module docstring): ``uv`` (N, 2), ``idepth``
+    (N,), ``idepth_var`` (N,), the right image's ``ab_right`` and the number of selected
+    pixels before the depth checks ``n_selected``."""
+
+    uv: np.ndarray
+    idepth: np.ndarray
+    idepth_var: np.ndarray
+    ab_right: np.ndarray
+    n_selected: int
+
+
 @dataclass(eq=False)
 class KeyframeData:
-    """Images and candidate points of one keyframe ``k`` (see module docstring)."""
+    """Images and candidate points of one keyframe ``k`` (see module docstring). The
+    points may still be under construction in the keyframe worker thread
+    (``build_keyframe(..., background=True)``): reading ``uv``, ``idepth``,
+    ``idepth_var``, ``ab_right`` or ``n_selected`` waits for them (and re-raises an
+    error of their construction)."""
 
     k: int
     t_ns: int
@@ -66,14 +84,23 @@ class KeyframeData:
     image: np.ndarray
     left: BilinearImage
     right: BilinearImage
-    uv: np.ndarray
-    idepth: np.ndarray
-    idepth_var: np.ndarray
-    ab_right: np.ndarray
-    n_selected: int
+    _points: KeyframePoints | Future
     in_graph: bool = False
     _ref: TrackingReference | None = None
     _pyr: tuple[BilinearImage, ...] = ()
+
+    @property
+    def points(self) -> KeyframePoints:
+        """The candidate points (waits for the worker thread if they are not ready)."""
+        if isinstance(self._points, Future):
+            self._points = self._points.result()
+        return self._points
+
+    uv = property(lambda self: self.points.uv)
+    idepth = property(lambda self: self.points.idepth)
+    idepth_var = property(lambda self: self.points.idepth_var)
+    ab_right = property(lambda self: self.points.ab_right)
+    n_selected = property(lambda self: self.points.n_selected)
 
     def pyramid(self, levels: int) -> tuple[BilinearImage, ...]:
         """The left image's pyramid (``vio.direct.trackframe.image_pyramid``; level 0 is
@@ -109,20 +136,33 @@ def right_affine(left: BilinearImage, right: BilinearImage, uv: np.ndarray, uv_m
     return np.array([np.log(sl), right.image.mean() - sl * left.image.mean()])
 
 
+# one worker: the points of a keyframe are built while the main thread runs the
+# keyframe's smoother update (their first reader is the next frame); the kernels release
+# the GIL (factors.jit), so the two overlap on two cores
+_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vio-keyframe")
+
+
 def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarray,
-                   rig: StereoRig, cfg: DirectConfig) -> KeyframeData:
+                   rig: StereoRig, cfg: DirectConfig, background: bool = False) -> KeyframeData:
     """Undistort, select ``cfg.select.n_points`` candidates, search their depths along the
     epipolar lines in the right image (seed eq. 4.1/4.2) and keep those that pass the
-    search checks and ``cfg.points`` depth range; estimate the right image's affine."""
+    search checks and ``cfg.points`` depth range; estimate the right image's affine.
+    ``background``: the points (everything after the undistorted images) are built in a
+    worker thread; same result, read through ``KeyframeData``'s properties."""
     left_img, right_img = rig.undistort(left_raw, right_raw)
     L, R = BilinearImage(left_img), BilinearImage(right_img)
-    sel = select_points(left_img, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
-    gain = np.log(max(right_img.std(), 1e-3) / max(left_img.std(), 1e-3))
+    pts = _WORKER.submit(_points, L, R, rig, cfg) if background else _points(L, R, rig, cfg)
+    return KeyframeData(k, t_ns, rig.K0, left_img, L, R, pts)
+
+
+def _points(L: BilinearImage, R: BilinearImage, rig: StereoRig, cfg: DirectConfig) -> KeyframePoints:
+    """The candidate points of the undistorted pair ``L``, ``R`` (``build_keyframe``)."""
+    sel = select_points(L.image, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
+    gain = np.log(max(R.image.std(), 1e-3) / max(L.image.std(), 1e-3))
     ep = epipolar_search(L, R, sel.uv, rig.K0, rig.K1, rig.T_c1_c0, cfg.epipolar, (gain, 0.0))
     pc = cfg.points
     ok = ep.ok & (ep.idepth >= 1.0 / pc.max_depth_m) & (ep.idepth <= 1.0 / pc.min_depth_m)
     Rm = rig.T_c1_c0.rotation().matrix()
     offs = PATTERN @ (rig.K1.K @ Rm @ np.linalg.inv(rig.K0.K))[:2, :2].T
     ab_r = right_affine(L, R, sel.uv[ok], ep.uv_match[ok], offs)
-    return KeyframeData(k, t_ns, rig.K0, left_img, L, R, sel.uv[ok], ep.idepth[ok],
-                        ep.variance[ok], ab_r, len(sel))
+    return KeyframePoints(sel.uv[ok], ep.idepth[ok], ep.variance[ok], ab_r, len(sel))
