@@ -60,14 +60,16 @@ class StereoRig:
 @dataclass(frozen=True, eq=False)
 class KeyframePoints:
     """The candidate points of a keyframe (module docstring): ``uv`` (N, 2), ``idepth``
-    (N,), ``idepth_var`` (N,), the right image's ``ab_right`` and the number of selected
-    pixels before the depth checks ``n_selected``."""
+    (N,), ``idepth_var`` (N,), the right image's ``ab_right``, the number of selected
+    pixels before the depth checks ``n_selected`` and TrackFrame's reference of the
+    points (``ref``, its affine a placeholder; None when tracking is off)."""
 
     uv: np.ndarray
     idepth: np.ndarray
     idepth_var: np.ndarray
     ab_right: np.ndarray
     n_selected: int
+    ref: TrackingReference | None = None
 
 
 @dataclass(eq=False)
@@ -84,7 +86,7 @@ class KeyframeData:
     image: np.ndarray
     left: BilinearImage
     right: BilinearImage
-    _points: KeyframePoints | Future
+    _points: KeyframePoints | Future | None
     in_graph: bool = False
     _ref: TrackingReference | None = None
     _pyr: tuple[BilinearImage, ...] = ()
@@ -113,6 +115,8 @@ class KeyframeData:
     def reference(self, ab: np.ndarray, cfg: DirectConfig) -> TrackingReference:
         """TrackFrame reference of this keyframe (built once) with its affine ``ab``."""
         if self._ref is None:
+            self._ref = self.points.ref
+        if self._ref is None or self._ref.levels != cfg.track.levels:
             self._ref = make_reference(self.pyramid(cfg.track.levels), self.uv, self.idepth, self.K,
                                        self.idepth_var, tuple(ab), cfg.track)
         return TrackingReference(self._ref.K, self._ref.patches, self._ref.idepth,
@@ -151,12 +155,17 @@ def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarra
     worker thread; same result, read through ``KeyframeData``'s properties."""
     left_img, right_img = rig.undistort(left_raw, right_raw)
     L, R = BilinearImage(left_img), BilinearImage(right_img)
-    pts = _WORKER.submit(_points, L, R, rig, cfg) if background else _points(L, R, rig, cfg)
-    return KeyframeData(k, t_ns, rig.K0, left_img, L, R, pts)
+    kd = KeyframeData(k, t_ns, rig.K0, left_img, L, R, None)
+    pyr = kd.pyramid(cfg.track.levels)      # here: TrackFrame uses it while the worker runs
+    kd._points = _WORKER.submit(_points, pyr, R, rig, cfg) if background else _points(pyr, R, rig, cfg)
+    return kd
 
 
-def _points(L: BilinearImage, R: BilinearImage, rig: StereoRig, cfg: DirectConfig) -> KeyframePoints:
-    """The candidate points of the undistorted pair ``L``, ``R`` (``build_keyframe``)."""
+def _points(pyr: tuple[BilinearImage, ...], R: BilinearImage, rig: StereoRig,
+            cfg: DirectConfig) -> KeyframePoints:
+    """The candidate points of the undistorted pair (left image's pyramid ``pyr``, right
+    image ``R``) and their TrackFrame reference (``build_keyframe``)."""
+    L = pyr[0]
     sel = select_points(L.image, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
     gain = np.log(max(R.image.std(), 1e-3) / max(L.image.std(), 1e-3))
     ep = epipolar_search(L, R, sel.uv, rig.K0, rig.K1, rig.T_c1_c0, cfg.epipolar, (gain, 0.0))
@@ -165,4 +174,6 @@ def _points(L: BilinearImage, R: BilinearImage, rig: StereoRig, cfg: DirectConfi
     Rm = rig.T_c1_c0.rotation().matrix()
     offs = PATTERN @ (rig.K1.K @ Rm @ np.linalg.inv(rig.K0.K))[:2, :2].T
     ab_r = right_affine(L, R, sel.uv[ok], ep.uv_match[ok], offs)
-    return KeyframePoints(sel.uv[ok], ep.idepth[ok], ep.variance[ok], ab_r, len(sel))
+    uv, idepth, var = sel.uv[ok], ep.idepth[ok], ep.variance[ok]
+    ref = make_reference(pyr, uv, idepth, rig.K0, var, (0.0, 0.0), cfg.track) if cfg.track.enabled else None
+    return KeyframePoints(uv, idepth, var, ab_r, len(sel), ref)
