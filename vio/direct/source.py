@@ -147,11 +147,14 @@ class PhotometricSource:
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
         """Build keyframe k's data from ``frame.images`` (left, right), read from
-        ``frame.image_files`` when the packet carries none."""
-        imgs = getattr(frame, "images", ()) or tuple(read_image(p) for p in getattr(frame, "image_files", ())[:2])
+        ``frame.image_files`` when the packet carries none (the right one in the
+        keyframe worker, ``vio.direct.keyframe.build_keyframe``)."""
+        imgs = getattr(frame, "images", ()) or tuple(getattr(frame, "image_files", ())[:2])
         if len(imgs) < 2:
             raise ValueError(f"direct mode: keyframe {k} packet has no stereo images")
-        self.kfs[k] = build_keyframe(k, frame.t_ns, imgs[0], imgs[1], self.rig, self.cfg, background=True)
+        left = imgs[0] if isinstance(imgs[0], np.ndarray) else read_image(imgs[0])
+        # the right image (or its file) goes to the keyframe worker with the points
+        self.kfs[k] = build_keyframe(k, frame.t_ns, left, imgs[1], self.rig, self.cfg, background=True)
 
     def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
                        g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> list[int]:
