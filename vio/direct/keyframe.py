@@ -118,6 +118,11 @@ class KeyframeData:
             self._pyr = (self.left,) + tuple(BilinearImage(im) for im in pyramid(self.image, levels)[1:])
         return self._pyr[:levels]
 
+    def release_pyramid(self) -> None:
+        """Drop the coarse levels (~3 MB at 752 x 480) once TrackFrame no longer needs
+        them (``pyramid`` rebuilds them if asked again)."""
+        self._pyr = ()
+
     def reference(self, ab: np.ndarray, cfg: DirectConfig) -> TrackingReference:
         """TrackFrame reference of this keyframe (built once) with its affine ``ab``."""
         if self._ref is None:
@@ -162,7 +167,7 @@ def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarra
     properties); the left image and its pyramid are built here."""
     left_img = rig.undistort_one(left_raw, 0)
     kd = KeyframeData(k, t_ns, rig.K0, left_img, BilinearImage(left_img), None)
-    pyr = kd.pyramid(cfg.track.levels)      # here: TrackFrame uses it while the worker runs
+    pyr = kd.pyramid(cfg.track.levels) if cfg.track.enabled else (kd.left,)   # TrackFrame uses it meanwhile
     kd._points = _WORKER.submit(_points, pyr, right_raw, rig, cfg) if background else _points(pyr, right_raw, rig, cfg)
     return kd
 
