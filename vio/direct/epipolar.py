@@ -83,17 +83,6 @@ def _line_geometry(f: np.ndarray, R: np.ndarray, t: np.ndarray, K1: Pinhole, cfg
     return x0, d / np.maximum(length, 1e-12)[:, None], length, ok
 
 
-def _patch_cost(target: ImageSampler, centers: np.ndarray, offs: np.ndarray, ref: np.ndarray,
-                zero_mean: bool):
-    """SSD over the pattern at ``centers`` (..., 2); ref (N, P) broadcast over the sample axis."""
-    pix = centers[..., None, :] + offs
-    I, gx, gy, valid = target.sample(pix[..., 0], pix[..., 1])
-    diff = I - ref
-    if zero_mean:
-        diff = diff - diff.mean(-1, keepdims=True)
-    return (diff ** 2).sum(-1), valid.all(-1), diff, gx, gy
-
-
 @njit(cache=True, nogil=True)
 def _search_kernel(stack, x0, l, length, ok, offs, ref, step, S, zero_mean):
     """Per point: best sample index along the segment (interior minimum only), its SSD
@@ -165,21 +154,92 @@ def _discrete_search(target, x0, l, length, ok, offs, ref, cfg):
 
 
 def _refine(target, x0, l, s, offs, ref, cfg):
-    """Gauss-Newton on the position s along the line (N,), each step clamped to half a step."""
-    best_e, _, _, _, _ = _patch_cost(target, x0 + s[:, None] * l, offs, ref, cfg.zero_mean)
-    for _ in range(cfg.gn_iters):
-        e, valid, diff, gx, gy = _patch_cost(target, x0 + s[:, None] * l, offs, ref, cfg.zero_mean)
-        Jl = gx * l[:, None, 0] + gy * l[:, None, 1]
-        if cfg.zero_mean:
-            Jl = Jl - Jl.mean(-1, keepdims=True)
-        H = (Jl * Jl).sum(-1)
-        ds = np.clip(-(Jl * diff).sum(-1) / np.maximum(H, 1e-9), -0.5 * cfg.step_px, 0.5 * cfg.step_px)
-        s_new = s + ds
-        e_new, v_new, _, _, _ = _patch_cost(target, x0 + s_new[:, None] * l, offs, ref, cfg.zero_mean)
-        better = v_new & (e_new < best_e)
-        s = np.where(better, s_new, s)
-        best_e = np.where(better, e_new, best_e)
-    return s, best_e
+    """Gauss-Newton on the position s along the line (N,), each step clamped to half a
+    step; a step is kept only where the pattern stays inside and the SSD decreases.
+    Returns s and the SSD there."""
+    stack = getattr(target, "_stack", None)
+    if stack is None:
+        raise TypeError("epipolar_search: the target image must be an array or a BilinearImage")
+    if ref.shape[1] != 8:
+        raise ValueError(f"epipolar refinement assumes DSO's 8-pixel pattern, got {ref.shape[1]}")
+    return _refine_kernel(stack, np.ascontiguousarray(x0), np.ascontiguousarray(l), np.ascontiguousarray(s),
+                          np.ascontiguousarray(offs), np.ascontiguousarray(ref), float(cfg.step_px),
+                          int(cfg.gn_iters), bool(cfg.zero_mean))
+
+
+@njit(cache=True, nogil=True)
+def _sum8(a):
+    """Sum of 8 values in numpy's pairwise order (bit-identical to ``a.sum(-1)``)."""
+    return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]))
+
+
+@njit(cache=True, nogil=True)
+def _bilinear(stack, u0, v0, fx, fy, c):
+    """Channel ``c`` of ``stack`` (H, W, 3) at (u0 + fx, v0 + fy) (``BilinearImage.sample``)."""
+    top = stack[v0, u0, c] + fx * (stack[v0, u0 + 1, c] - stack[v0, u0, c])
+    bot = stack[v0 + 1, u0, c] + fx * (stack[v0 + 1, u0 + 1, c] - stack[v0 + 1, u0, c])
+    return top + fy * (bot - top)
+
+
+@njit(cache=True, nogil=True)
+def _cost8(stack, cu, cv, offs, ref, zero_mean, diff, gx, gy):
+    """SSD of the 8-pixel pattern centred at (cu, cv) against ``ref`` (8,) (zero-mean
+    difference when asked), filling ``diff``, ``gx``, ``gy`` (8,); invalid samples read
+    as 0 (``BilinearImage.sample``). Returns (SSD, all samples valid)."""
+    h, w = stack.shape[0], stack.shape[1]
+    ok = True
+    for k in range(8):
+        u, v = cu + offs[k, 0], cv + offs[k, 1]
+        if u >= 1.0 and u < w - 2.0 and v >= 1.0 and v < h - 2.0:
+            u0, v0 = int(u), int(v)
+            fx, fy = u - u0, v - v0
+            diff[k] = _bilinear(stack, u0, v0, fx, fy, 0)
+            gx[k] = _bilinear(stack, u0, v0, fx, fy, 1)
+            gy[k] = _bilinear(stack, u0, v0, fx, fy, 2)
+        else:
+            ok = False
+            diff[k], gx[k], gy[k] = 0.0, 0.0, 0.0
+        diff[k] = diff[k] - ref[k]
+    if zero_mean:
+        m = _sum8(diff) / 8.0
+        for k in range(8):
+            diff[k] = diff[k] - m
+    sq = np.empty(8)
+    for k in range(8):
+        sq[k] = diff[k] * diff[k]
+    return _sum8(sq), ok
+
+
+@njit(cache=True, nogil=True)
+def _refine_kernel(stack, x0, l, s, offs, ref, step, iters, zero_mean):
+    """``_refine`` per point (the arithmetic of its former numpy form, bit for bit)."""
+    n = s.shape[0]
+    s_out, best = s.copy(), np.empty(n)
+    diff, gx, gy, jl, tmp = np.empty(8), np.empty(8), np.empty(8), np.empty(8), np.empty(8)
+    for i in range(n):
+        si = s_out[i]
+        be, _ = _cost8(stack, x0[i, 0] + si * l[i, 0], x0[i, 1] + si * l[i, 1], offs, ref[i], zero_mean, diff, gx, gy)
+        for _ in range(iters):
+            _cost8(stack, x0[i, 0] + si * l[i, 0], x0[i, 1] + si * l[i, 1], offs, ref[i], zero_mean, diff, gx, gy)
+            for k in range(8):
+                jl[k] = gx[k] * l[i, 0] + gy[k] * l[i, 1]
+            if zero_mean:
+                m = _sum8(jl) / 8.0
+                for k in range(8):
+                    jl[k] = jl[k] - m
+            for k in range(8):
+                tmp[k] = jl[k] * jl[k]
+            H = _sum8(tmp)
+            for k in range(8):
+                tmp[k] = jl[k] * diff[k]
+            ds = min(max(-_sum8(tmp) / max(H, 1e-9), -0.5 * step), 0.5 * step)
+            s_new = si + ds
+            e_new, v_new = _cost8(stack, x0[i, 0] + s_new * l[i, 0], x0[i, 1] + s_new * l[i, 1], offs,
+                                  ref[i], zero_mean, diff, gx, gy)
+            if v_new and e_new < be:
+                si, be = s_new, e_new
+        s_out[i], best[i] = si, be
+    return s_out, best
 
 
 def _triangulate(f: np.ndarray, uv1: np.ndarray, R: np.ndarray, t: np.ndarray, K1: Pinhole):
@@ -231,7 +291,7 @@ def epipolar_search(left: np.ndarray | ImageSampler, right: np.ndarray | ImageSa
     ok &= host.valid.all(1)
     s_int, best, quality = _discrete_search(Rimg, x0, l, length, ok, offs, ref, cfg)
     ok &= np.isfinite(best)
-    s_best, e_ref = _refine(Rimg, x0, l, np.where(ok, s_int, 0.0), offs[None], ref, cfg)
+    s_best, e_ref = _refine(Rimg, x0, l, np.where(ok, s_int, 0.0), offs, ref, cfg)
     uv1 = x0 + s_best[:, None] * l
     rho, tri_ok = _triangulate(f, uv1, R, t, K1)
     P = PATTERN.shape[0]

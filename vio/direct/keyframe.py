@@ -9,18 +9,21 @@ Frames: ``uv`` are undistorted pinhole pixels of cam0 (pixel-centre convention);
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import gtsam
 import numpy as np
 
-from factors.image_ops import BilinearImage
+from factors.image_ops import BilinearImage, pyramid
 from factors.photometric import PATTERN, Pinhole
 from vio.direct.config import DirectConfig
 from vio.direct.epipolar import epipolar_search, undistort_pinhole
 from vio.direct.photocal import PhotometricCalibration
 from vio.direct.select import select_points
 from vio.direct.trackframe import TrackingReference, make_reference
+from vio.io.euroc import read_image
 from vio.io.types import CameraCalib
 
 
@@ -48,36 +51,84 @@ class StereoRig:
     def undistort(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Both images as undistorted pinhole float64 images (no-op without distortion),
         photometrically corrected first when a calibration is set."""
-        if not self.photo0.identity:
-            left = self.photo0.apply(left)
-        if not self.photo1.identity:
-            right = self.photo1.apply(right)
-        return (undistort_pinhole(left, self.cam0.K, self.cam0.distortion, self.cam0.distortion_model),
-                undistort_pinhole(right, self.cam1.K, self.cam1.distortion, self.cam1.distortion_model))
+        return self.undistort_one(left, 0), self.undistort_one(right, 1)
+
+    def undistort_one(self, image: np.ndarray, cam: int) -> np.ndarray:
+        """``undistort`` of camera ``cam``'s (0: left, 1: right) image alone."""
+        photo, calib = (self.photo0, self.cam0) if cam == 0 else (self.photo1, self.cam1)
+        if not photo.identity:
+            image = photo.apply(image)
+        return undistort_pinhole(image, calib.K, calib.distortion, calib.distortion_model)
 
 
-@dataclass(eq=False)
-class KeyframeData:
-    """Images and candidate points of one keyframe ``k`` (see module docstring)."""
+@dataclass(frozen=True, eq=False)
+class KeyframePoints:
+    """The candidate points of a keyframe (module docstring): ``uv`` (N, 2), ``idepth``
+    (N,), ``idepth_var`` (N,), the right image's ``ab_right``, the number of selected
+    pixels before the depth checks ``n_selected``, TrackFrame's reference of the
+    points (``ref``, its affine a placeholder; None when tracking is off) and the
+    undistorted right image ``right``."""
 
-    k: int
-    t_ns: int
-    K: Pinhole
-    image: np.ndarray
-    left: BilinearImage
     right: BilinearImage
     uv: np.ndarray
     idepth: np.ndarray
     idepth_var: np.ndarray
     ab_right: np.ndarray
     n_selected: int
+    ref: TrackingReference | None = None
+
+
+@dataclass(eq=False)
+class KeyframeData:
+    """Images and candidate points of one keyframe ``k`` (see module docstring). The
+    points may still be under construction in the keyframe worker thread
+    (``build_keyframe(..., background=True)``): reading ``uv``, ``idepth``,
+    ``idepth_var``, ``ab_right``, ``n_selected`` or ``right`` (the right image, read and
+    undistorted there too) waits for them (and re-raises an error of their construction)."""
+
+    k: int
+    t_ns: int
+    K: Pinhole
+    image: np.ndarray
+    left: BilinearImage
+    _points: KeyframePoints | Future | None
     in_graph: bool = False
     _ref: TrackingReference | None = None
+    _pyr: tuple[BilinearImage, ...] = ()
+
+    @property
+    def points(self) -> KeyframePoints:
+        """The candidate points (waits for the worker thread if they are not ready)."""
+        if isinstance(self._points, Future):
+            self._points = self._points.result()
+        return self._points
+
+    right = property(lambda self: self.points.right)
+    uv = property(lambda self: self.points.uv)
+    idepth = property(lambda self: self.points.idepth)
+    idepth_var = property(lambda self: self.points.idepth_var)
+    ab_right = property(lambda self: self.points.ab_right)
+    n_selected = property(lambda self: self.points.n_selected)
+
+    def pyramid(self, levels: int) -> tuple[BilinearImage, ...]:
+        """The left image's pyramid (``vio.direct.trackframe.image_pyramid``; level 0 is
+        ``left``), built once: TrackFrame samples it as the new frame, then as the
+        reference when this keyframe is tracked against."""
+        if len(self._pyr) < levels:
+            self._pyr = (self.left,) + tuple(BilinearImage(im) for im in pyramid(self.image, levels)[1:])
+        return self._pyr[:levels]
+
+    def release_pyramid(self) -> None:
+        """Drop the coarse levels (~3 MB at 752 x 480) once TrackFrame no longer needs
+        them (``pyramid`` rebuilds them if asked again)."""
+        self._pyr = ()
 
     def reference(self, ab: np.ndarray, cfg: DirectConfig) -> TrackingReference:
         """TrackFrame reference of this keyframe (built once) with its affine ``ab``."""
         if self._ref is None:
-            self._ref = make_reference(self.image, self.uv, self.idepth, self.K,
+            self._ref = self.points.ref
+        if self._ref is None or self._ref.levels != cfg.track.levels:
+            self._ref = make_reference(self.pyramid(cfg.track.levels), self.uv, self.idepth, self.K,
                                        self.idepth_var, tuple(ab), cfg.track)
         return TrackingReference(self._ref.K, self._ref.patches, self._ref.idepth,
                                  self._ref.idepth_var, np.asarray(ab, float))
@@ -100,20 +151,42 @@ def right_affine(left: BilinearImage, right: BilinearImage, uv: np.ndarray, uv_m
     return np.array([np.log(sl), right.image.mean() - sl * left.image.mean()])
 
 
-def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarray,
-                   rig: StereoRig, cfg: DirectConfig) -> KeyframeData:
+# one worker: the points of a keyframe are built while the main thread runs the
+# keyframe's smoother update (their first reader is the next frame); the kernels release
+# the GIL (factors.jit), so the two overlap on two cores
+_WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vio-keyframe")
+
+
+def build_keyframe(k: int, t_ns: int, left_raw: np.ndarray, right_raw: np.ndarray | str | Path,
+                   rig: StereoRig, cfg: DirectConfig, background: bool = False) -> KeyframeData:
     """Undistort, select ``cfg.select.n_points`` candidates, search their depths along the
     epipolar lines in the right image (seed eq. 4.1/4.2) and keep those that pass the
-    search checks and ``cfg.points`` depth range; estimate the right image's affine."""
-    left_img, right_img = rig.undistort(left_raw, right_raw)
-    L, R = BilinearImage(left_img), BilinearImage(right_img)
-    sel = select_points(left_img, cfg.select)
-    gain = np.log(max(right_img.std(), 1e-3) / max(left_img.std(), 1e-3))
+    search checks and ``cfg.points`` depth range; estimate the right image's affine.
+    ``right_raw``: the right image or its file. ``background``: the points and the right
+    image are built in a worker thread (same result, read through ``KeyframeData``'s
+    properties); the left image and its pyramid are built here."""
+    left_img = rig.undistort_one(left_raw, 0)
+    kd = KeyframeData(k, t_ns, rig.K0, left_img, BilinearImage(left_img), None)
+    pyr = kd.pyramid(cfg.track.levels) if cfg.track.enabled else (kd.left,)   # TrackFrame uses it meanwhile
+    kd._points = _WORKER.submit(_points, pyr, right_raw, rig, cfg) if background else _points(pyr, right_raw, rig, cfg)
+    return kd
+
+
+def _points(pyr: tuple[BilinearImage, ...], right_raw: np.ndarray | str | Path, rig: StereoRig,
+            cfg: DirectConfig) -> KeyframePoints:
+    """The candidate points of the undistorted pair (left image's pyramid ``pyr``, right
+    image or its file ``right_raw``) and their TrackFrame reference (``build_keyframe``)."""
+    L = pyr[0]
+    raw = read_image(right_raw) if isinstance(right_raw, (str, Path)) else right_raw
+    R = BilinearImage(rig.undistort_one(raw, 1))
+    sel = select_points(L.image, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
+    gain = np.log(max(R.image.std(), 1e-3) / max(L.image.std(), 1e-3))
     ep = epipolar_search(L, R, sel.uv, rig.K0, rig.K1, rig.T_c1_c0, cfg.epipolar, (gain, 0.0))
     pc = cfg.points
     ok = ep.ok & (ep.idepth >= 1.0 / pc.max_depth_m) & (ep.idepth <= 1.0 / pc.min_depth_m)
     Rm = rig.T_c1_c0.rotation().matrix()
     offs = PATTERN @ (rig.K1.K @ Rm @ np.linalg.inv(rig.K0.K))[:2, :2].T
     ab_r = right_affine(L, R, sel.uv[ok], ep.uv_match[ok], offs)
-    return KeyframeData(k, t_ns, rig.K0, left_img, L, R, sel.uv[ok], ep.idepth[ok],
-                        ep.variance[ok], ab_r, len(sel))
+    uv, idepth, var = sel.uv[ok], ep.idepth[ok], ep.variance[ok]
+    ref = make_reference(pyr, uv, idepth, rig.K0, var, (0.0, 0.0), cfg.track) if cfg.track.enabled else None
+    return KeyframePoints(R, uv, idepth, var, ab_r, len(sel), ref)

@@ -12,11 +12,13 @@ DSO's random-direction dot product is replaced by the plain gradient magnitude.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from factors.image_ops import central_gradient
+from factors.jit import njit
 from vio.direct.config import SelectConfig
 
 
@@ -38,75 +40,163 @@ class SelectedPoints:
 def gradient_threshold(grad: np.ndarray, block: int, offset: float) -> np.ndarray:
     """Per-pixel threshold: 3x3-block-smoothed median of ``grad`` over ``block``-sized blocks + offset."""
     h, w = grad.shape
-    nby, nbx = -(-h // block), -(-w // block)
-    pad = np.full((nby * block, nbx * block), np.nan)
-    pad[:h, :w] = grad
-    blocks = pad.reshape(nby, block, nbx, block).transpose(0, 2, 1, 3).reshape(nby, nbx, -1)
-    srt = np.sort(blocks, axis=-1)                  # NaN (padding) sorts last
-    n = np.maximum((~np.isnan(blocks)).sum(-1), 1)
-    lo = np.take_along_axis(srt, ((n - 1) // 2)[..., None], -1)[..., 0]
-    hi = np.take_along_axis(srt, (n // 2)[..., None], -1)[..., 0]
-    med = 0.5 * (lo + hi) + offset                  # = nanmedian, without its overhead
-    p = np.pad(med, 1, mode="edge")
-    smooth = sum(p[i:i + nby, j:j + nbx] for i in range(3) for j in range(3)) / 9.0
+    smooth = block_threshold(grad, block, offset)
     return np.repeat(np.repeat(smooth, block, 0), block, 1)[:h, :w]
 
 
-def _best_per_cell(score: np.ndarray, cell: int) -> tuple[np.ndarray, np.ndarray]:
-    """Flat pixel index of the max-score pixel of every cell (-1 where all scores < 0),
-    and a per-cell map of that choice (ny, nx)."""
-    h, w = score.shape
-    ny, nx = -(-h // cell), -(-w // cell)
-    pad = np.full((ny * cell, nx * cell), -1.0)
-    pad[:h, :w] = score
-    cells = pad.reshape(ny, cell, nx, cell).transpose(0, 2, 1, 3).reshape(ny, nx, -1)
-    arg = np.argmax(cells, axis=-1)
-    best = np.take_along_axis(cells, arg[..., None], -1)[..., 0]
-    cy, cx = np.divmod(arg, cell)
-    rows = np.arange(ny)[:, None] * cell + cy
-    cols = np.arange(nx)[None, :] * cell + cx
-    idx = np.where(best >= 0, rows * w + cols, -1)
-    return idx, best >= 0
+def block_threshold(grad: np.ndarray, block: int, offset: float) -> np.ndarray:
+    """The threshold of ``gradient_threshold`` per block, (ceil(H / block), ceil(W / block))."""
+    med = _block_medians(np.ascontiguousarray(grad, dtype=np.float64), block) + offset
+    nby, nbx = med.shape
+    p = np.pad(med, 1, mode="edge")
+    return sum(p[i:i + nby, j:j + nbx] for i in range(3) for j in range(3)) / 9.0
 
 
-def _select_with_pot(grad: np.ndarray, thr: np.ndarray, pot: int, cfg: SelectConfig):
+@njit
+def _block_medians(grad, block):
+    """Median of ``grad`` (H, W) over each ``block`` x ``block`` block (clipped at the
+    right and bottom edges): the mean of the two middle values of an even count."""
     h, w = grad.shape
-    chosen, levels = [], []
-    taken = np.zeros((h, w), bool)
-    for lev in range(cfg.levels):
-        cell = pot * 2 ** lev
-        score = np.where(grad > thr * cfg.level_factor ** lev, grad, -1.0)
-        idx, found = _best_per_cell(score, cell)
-        # skip cells that already hold a point from a finer level (DSO: take the
-        # coarse candidate only where the finer levels found nothing)
-        ny, nx = idx.shape
-        tk = np.zeros((ny * cell, nx * cell), bool)
-        tk[:h, :w] = taken
-        occupied = tk.reshape(ny, cell, nx, cell).any(axis=(1, 3))
-        new = idx[found & ~occupied]
-        chosen.append(new)
-        levels.append(np.full(new.shape, lev))
-        taken.flat[new] = True
-    idx = np.concatenate(chosen)
-    return idx, np.concatenate(levels)
+    nby, nbx = -(-h // block), -(-w // block)
+    med = np.empty((nby, nbx))
+    buf = np.empty(block * block)
+    tmp = np.empty(block * block)
+    counts = np.empty(_BINS, np.int64)
+    for by in range(nby):
+        for bx in range(nbx):
+            n = 0
+            for y in range(by * block, min(h, (by + 1) * block)):
+                for x in range(bx * block, min(w, (bx + 1) * block)):
+                    buf[n] = grad[y, x]
+                    n += 1
+            lo, hi = _ranks(buf, n, (n - 1) // 2, n // 2, counts, tmp)
+            med[by, bx] = 0.5 * (lo + hi)
+    return med
 
 
-def select_points(image: np.ndarray, config: SelectConfig = SelectConfig()) -> SelectedPoints:
-    """Select about ``config.n_points`` well-spread high-gradient pixels of a (H, W) image."""
+_BINS = 64
+
+
+@njit
+def _ranks(buf, n, k0, k1, counts, tmp):
+    """The k0-th and k1-th smallest (0-based, k0 <= k1) of ``buf[:n]``, exactly: a
+    histogram over [min, max] finds the bins holding those ranks, whose few values are
+    then sorted (every value is binned by the same expression, so ranks are consistent)."""
+    mn, mx = buf[0], buf[0]
+    for i in range(1, n):
+        v = buf[i]
+        if v < mn:
+            mn = v
+        elif v > mx:
+            mx = v
+    if mx == mn:
+        return mn, mn
+    nb = counts.shape[0]
+    scale = nb / (mx - mn)
+    counts[:] = 0
+    for i in range(n):
+        counts[min(int((buf[i] - mn) * scale), nb - 1)] += 1
+    b0, below = 0, 0
+    while below + counts[b0] <= k0:
+        below += counts[b0]
+        b0 += 1
+    b1, upto = b0, below + counts[b0]
+    while upto <= k1:
+        b1 += 1
+        upto += counts[b1]
+    m = 0
+    for i in range(n):
+        b = min(int((buf[i] - mn) * scale), nb - 1)
+        if b0 <= b <= b1:
+            tmp[m] = buf[i]
+            m += 1
+    srt = np.sort(tmp[:m])
+    return srt[k0 - below], srt[k1 - below]
+
+
+@njit
+def _magnitude(gx, gy):
+    """|grad| (H, W) = hypot(gx, gy) per pixel."""
+    h, w = gx.shape
+    out = np.empty((h, w))
+    for y in range(h):
+        for x in range(w):
+            out[y, x] = math.hypot(gx[y, x], gy[y, x])
+    return out
+
+
+@njit
+def _select_cells(grad, thr, block, border, pot, factors):
+    """DSO's multi-level cell selection (module docstring) for cell size ``pot``, in one
+    pass over the (H, W) gradient magnitudes ``grad`` (pixels within ``border`` of the
+    edge count as 0). Level l has cells of ``pot 2^l`` px and the threshold ``thr`` (per
+    ``block``, ``block_threshold``) times ``factors[l]``; a cell keeps its first (row-major)
+    strongest pixel above threshold unless a finer level chose a pixel inside it.
+    Returns the flat pixel indices and their levels, level by level, cells row-major."""
+    h, w = grad.shape
+    L = factors.shape[0]
+    ny = np.empty(L, np.int64)
+    nx = np.empty(L, np.int64)
+    for lev in range(L):
+        ny[lev] = -(-h // (pot << lev))
+        nx[lev] = -(-w // (pot << lev))
+    best = np.full((L, ny[0], nx[0]), -1.0)      # level l uses the [:ny[l], :nx[l]] corner
+    arg = np.full((L, ny[0], nx[0]), -1, np.int64)
+    col_cell = np.empty((L, w), np.int64)        # cell column of pixel column x, per level
+    for lev in range(L):
+        for x in range(w):
+            col_cell[lev, x] = x // (pot << lev)
+    for y in range(h):
+        inner_y = border <= y < h - border
+        trow = thr[y // block]
+        for x in range(w):
+            g = grad[y, x] if inner_y and border <= x < w - border else 0.0
+            t = trow[x // block]
+            for lev in range(L):
+                if g > t * factors[lev]:
+                    cy, cx = y // (pot << lev), col_cell[lev, x]
+                    if g > best[lev, cy, cx]:
+                        best[lev, cy, cx] = g
+                        arg[lev, cy, cx] = y * w + x
+    idx = np.empty(L * ny[0] * nx[0], np.int64)
+    levs = np.empty(L * ny[0] * nx[0], np.int64)
+    taken = np.zeros((L, ny[0], nx[0]), np.bool_)  # a cell holds a point of this or a finer level
+    n = 0
+    for lev in range(L):
+        for cy in range(ny[lev]):
+            for cx in range(nx[lev]):
+                occupied = False
+                if lev > 0:
+                    for dy in range(2):
+                        for dx in range(2):
+                            if 2 * cy + dy < ny[lev - 1] and 2 * cx + dx < nx[lev - 1]:
+                                occupied |= taken[lev - 1, 2 * cy + dy, 2 * cx + dx]
+                taken[lev, cy, cx] = occupied
+                if arg[lev, cy, cx] >= 0 and not occupied:
+                    idx[n], levs[n] = arg[lev, cy, cx], lev
+                    taken[lev, cy, cx] = True
+                    n += 1
+    return idx[:n], levs[:n]
+
+
+def select_points(image: np.ndarray, config: SelectConfig = SelectConfig(),
+                  gradients: tuple[np.ndarray, np.ndarray] | None = None) -> SelectedPoints:
+    """Select about ``config.n_points`` well-spread high-gradient pixels of a (H, W) image;
+    ``gradients`` (gx, gy): its central-difference gradients when already computed
+    (``factors.image_ops.central_gradient``, e.g. a ``BilinearImage``'s)."""
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2 or min(img.shape) < 2 * config.border + 8:
         raise ValueError(f"select_points needs a (H, W) grey image larger than the border, got {img.shape}")
-    gx, gy = central_gradient(img)
-    grad = np.hypot(gx, gy)
-    thr = gradient_threshold(grad, config.block, config.grad_offset)
+    gx, gy = central_gradient(img) if gradients is None else gradients
+    grad = _magnitude(gx, gy)
+    thr = block_threshold(grad, config.block, config.grad_offset)
     b = config.border
-    grad_in = grad.copy()
-    grad_in[:b], grad_in[-b:], grad_in[:, :b], grad_in[:, -b:] = 0, 0, 0, 0
     area = (img.shape[0] - 2 * b) * (img.shape[1] - 2 * b)
     pot = int(np.clip(round(np.sqrt(area / config.n_points)), 1, 64))
+    factors = np.array([config.level_factor ** lev for lev in range(config.levels)])
     best = None
     for _ in range(8):  # a few secant-like steps on pot (count ~ 1 / pot^2)
-        idx, lev = _select_with_pot(grad_in, thr, pot, config)
+        idx, lev = _select_cells(grad, thr, config.block, b, pot, factors)
         if best is None or abs(len(idx) - config.n_points) < abs(len(best[0]) - config.n_points):
             best = (idx, lev, pot)
         if len(idx) == 0:

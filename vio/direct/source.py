@@ -114,6 +114,7 @@ class PhotometricSource:
         self.health = FactorHealth()
         self.n_factors_built = 0
         self._pending: list[tuple[Host, int]] = []
+        self._unhosted: list[KeyframeData] = []   # in the graph, Host not yet made (_host_pending)
         self.last_stats: dict = {}
         a, b = pc.affine_sigma
         self._ab_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, b]))
@@ -143,11 +144,14 @@ class PhotometricSource:
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
         """Build keyframe k's data from ``frame.images`` (left, right), read from
-        ``frame.image_files`` when the packet carries none."""
-        imgs = getattr(frame, "images", ()) or tuple(read_image(p) for p in getattr(frame, "image_files", ())[:2])
+        ``frame.image_files`` when the packet carries none (the right one in the
+        keyframe worker, ``vio.direct.keyframe.build_keyframe``)."""
+        imgs = getattr(frame, "images", ()) or tuple(getattr(frame, "image_files", ())[:2])
         if len(imgs) < 2:
             raise ValueError(f"direct mode: keyframe {k} packet has no stereo images")
-        self.kfs[k] = build_keyframe(k, frame.t_ns, imgs[0], imgs[1], self.rig, self.cfg)
+        left = imgs[0] if isinstance(imgs[0], np.ndarray) else read_image(imgs[0])
+        # the right image (or its file) goes to the keyframe worker with the points
+        self.kfs[k] = build_keyframe(k, frame.t_ns, left, imgs[1], self.rig, self.cfg, background=True)
 
     def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
                        g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> list[int]:
@@ -163,6 +167,7 @@ class PhotometricSource:
             if f < k and not fd.in_graph and vals.exists(X(f)):
                 self._insert_keyframe(fd, np.zeros(2), g, v, stamps)
         ab_k = self._track(k, kd, pred, v)
+        self._host_pending()
         T_k = v.atPose3(X(k))
         for h in sorted(self.hosts):
             host = self.hosts[h]
@@ -193,6 +198,7 @@ class PhotometricSource:
         are kept and its keys inserted at the next keyframe."""
         self.hosts = {}
         self._pending = []
+        self._unhosted = []
         kd = self.kfs.get(self.est.k)
         self.kfs = {} if kd is None else {kd.k: kd}
         if kd is not None:
@@ -222,9 +228,10 @@ class PhotometricSource:
         T_pred = v.atPose3(X(k))
         T_init = T_w_cp.between(T_pred.compose(T_b_c))
         t0 = time.perf_counter()
-        res = track_frame(prev.reference(ab_p, self.cfg), kd.image, T_init, ab_p, self.cfg.track,
+        res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), T_init, ab_p, self.cfg.track,
                           self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9))
         ms = (time.perf_counter() - t0) * 1e3
+        kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
         # re-orthonormalized: T_tr = T_w_cp (T_w_cp^-1 T_pred T_b_c) ... composes the
         # previous keyframe's rotation three times, so its rounding error tripled at every
         # keyframe (1e-16 -> 0.5% shear by keyframe 28 of real MH_01, then divergence)
@@ -279,25 +286,38 @@ class PhotometricSource:
         self.n_factors_built += 1
 
     def _insert_keyframe(self, kd: KeyframeData, ab: np.ndarray, g, v, stamps) -> None:
-        """A(k) with its prior, then keyframe k as a host of its candidate points."""
+        """A(k) with its prior; keyframe k becomes a host of its candidate points at the
+        first reader of the hosts (``_host_pending``), so the keyframe worker builds the
+        points while the smoother update of keyframe k runs (no host factor needs them
+        before keyframe k + 1)."""
         v.insert(A(kd.k), np.asarray(ab, float))
         g.add(gtsam.PriorFactorVector(A(kd.k), np.zeros(2), self._ab_noise))
         stamps[A(kd.k)] = kd.t_ns * 1e-9
         kd.in_graph = True
-        idx = _spread(kd.uv, self.cfg.points.max_points)
-        if len(idx) == 0:
-            return
-        patch = make_host_patch(kd.left, kd.uv[idx], self.rig.K0)
-        pts = HostPoints.create(patch, kd.idepth[idx], self.cfg.points.grad_c, self.cfg.points.max_targets)
-        self.hosts[kd.k] = Host(kd.k, kd.uv[idx].copy(), pts, [])
+        self._unhosted.append(kd)
+
+    def _host_pending(self) -> None:
+        """Make the Host of every keyframe inserted since (waits for its points)."""
+        for kd in self._unhosted:
+            if self.kfs.get(kd.k) is not kd:
+                continue
+            idx = _spread(kd.uv, self.cfg.points.max_points)
+            if len(idx) == 0:
+                continue
+            patch = make_host_patch(kd.left, kd.uv[idx], self.rig.K0)
+            pts = HostPoints.create(patch, kd.idepth[idx], self.cfg.points.grad_c, self.cfg.points.max_targets)
+            self.hosts[kd.k] = Host(kd.k, kd.uv[idx].copy(), pts, [])
+        self._unhosted = []
 
     # ------------------------------------------------------------- outputs
     def n_active(self) -> int:
+        self._host_pending()
         return int(sum(h.pts.alive.sum() for h in self.hosts.values()))
 
     def live_points(self) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
         """(host k, host pixels (N, 2), inverse depths (N,), point indices (N,)) of the
         live points of every host whose pose is in the estimate."""
+        self._host_pending()
         out = []
         for h, host in self.hosts.items():
             if self.est.values.exists(X(h)):
@@ -307,6 +327,7 @@ class PhotometricSource:
 
     def snapshot(self) -> PointSnapshot | None:
         """The live points seen in the newest keyframe at the current estimate (display)."""
+        self._host_pending()
         vals = self.est.values
         ks = [f for f, fd in self.kfs.items() if fd.in_graph and vals.exists(A(f))]
         if not ks:

@@ -21,9 +21,9 @@ real MH_01 keyframe 29 ends 0.30 deg off from a prediction 0.004 deg off the tru
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
+from typing import Sequence
 
 import gtsam
 import numpy as np
@@ -104,20 +104,32 @@ class TrackResult:
     levels: tuple[LevelStats, ...]
 
 
-def make_reference(image: np.ndarray, uv: np.ndarray, idepth: np.ndarray, K: Pinhole,
+def image_pyramid(image: np.ndarray | Sequence[BilinearImage], levels: int) -> tuple[BilinearImage, ...]:
+    """``levels`` samplers of ``image`` (H, W), level 0 full resolution, each next one
+    half the size (``factors.image_ops.pyramid``); an already built pyramid (a sequence
+    of ``BilinearImage``, at least ``levels`` long) is passed through."""
+    if isinstance(image, np.ndarray):
+        return tuple(BilinearImage(img) for img in pyramid(image, levels))
+    if len(image) < levels:
+        raise ValueError(f"image pyramid has {len(image)} levels, {levels} needed")
+    return tuple(image[:levels])
+
+
+def make_reference(image: np.ndarray | Sequence[BilinearImage], uv: np.ndarray, idepth: np.ndarray, K: Pinhole,
                    idepth_var: np.ndarray | None = None, ab: tuple[float, float] = (0.0, 0.0),
                    config: TrackConfig = TrackConfig()) -> TrackingReference:
-    """Sample the keyframe ``image`` (H, W) around pixels ``uv`` (N, 2) on every level."""
+    """Sample the keyframe ``image`` (H, W, or its ``image_pyramid``) around pixels
+    ``uv`` (N, 2) on every level."""
     uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
     idepth = np.asarray(idepth, dtype=np.float64).reshape(-1)
     if uv.shape[0] != idepth.shape[0] or uv.shape[1] != 2:
         raise ValueError(f"make_reference: uv {uv.shape} and idepth {idepth.shape} disagree")
     var = np.zeros_like(idepth) if idepth_var is None else np.asarray(idepth_var, float).reshape(-1)
     Ks, patches = [], []
-    for lev, img in enumerate(pyramid(image, config.levels)):
+    for lev, img in enumerate(image_pyramid(image, config.levels)):
         Kl = Pinhole(*scale_intrinsics(K.fx, K.fy, K.cx, K.cy, lev))
         Ks.append(Kl)
-        patches.append(make_host_patch(BilinearImage(img), scale_pixels(uv, lev), Kl))
+        patches.append(make_host_patch(img, scale_pixels(uv, lev), Kl))
     return TrackingReference(tuple(Ks), tuple(patches), idepth, var, np.asarray(ab, float))
 
 
@@ -167,20 +179,20 @@ def _retract(x, h):
     return x[0].retract(h[:6]), x[1] + h[6:]
 
 
-def track_frame(ref: TrackingReference, image: np.ndarray,
+def track_frame(ref: TrackingReference, image: np.ndarray | Sequence[BilinearImage],
                 T_kf_new_init: gtsam.Pose3 = _IDENTITY, ab_init: tuple[float, float] | None = None,
                 config: TrackConfig = TrackConfig(), prior: MotionPrior | None = None) -> TrackResult:
-    """Align ``image`` (H, W) to the keyframe ``ref``, starting from ``T_kf_new_init`` and
+    """Align ``image`` (H, W, or its ``image_pyramid``) to the keyframe ``ref``, starting from ``T_kf_new_init`` and
     ``ab_init`` (default: the keyframe's affine), with an optional motion ``prior``."""
     cfg = config
     if ref.levels < cfg.levels:
         raise ValueError(f"reference has {ref.levels} levels, config asks for {cfg.levels}")
     ab0 = ref.ab if ab_init is None else np.asarray(ab_init, float)
     x = (T_kf_new_init, ab0.astype(float).copy())
-    pyr = pyramid(image, cfg.levels)
+    pyr = image_pyramid(image, cfg.levels)
     stats, total = [], 0
     for lev in reversed(range(cfg.levels)):
-        fun, rmse = _level_problem(ref, lev, BilinearImage(pyr[lev]), cfg, prior)
+        fun, rmse = _level_problem(ref, lev, pyr[lev], cfg, prior)
         max_it = cfg.iters[cfg.levels - 1 - lev]
         res = levenberg_marquardt(fun, x, cfg.lm(max_it), retract=_retract,
                                   n_plain=0 if prior is None else 6)
