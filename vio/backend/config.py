@@ -162,7 +162,11 @@ class VisionConfig:
     observations in the leaving keyframes become a farewell factor of its new key and a
     depth-transfer factor (relative depth sigma ``reanchor_sigma``) ties the old key to the
     new one, both marginalized with those keyframes; off, they are dropped, which on long
-    tracks keeps only the window's last 2.5 s of each track."""
+    tracks keeps only the window's last 2.5 s of each track.
+    ``eliminate_depth``: landmarks keep their inverse depth inside the factor instead of
+    as a graph variable: one factor per anchor keyframe over all landmarks anchored there,
+    depths refined and Schur-eliminated at each linearization (``vio.backend.bundles``,
+    ``factors.landmark_schur``); ``depth_iters`` Gauss-Newton steps per linearization."""
 
     model: Literal["pinhole", "sphere"] = "pinhole"
     use_td: bool = True
@@ -184,6 +188,8 @@ class VisionConfig:
     max_landmarks: int = 120
     min_depth_m: float = 0.1
     max_depth_m: float = 100.0
+    eliminate_depth: bool = False
+    depth_iters: int = 2
 
 
 @dataclass(frozen=True)
