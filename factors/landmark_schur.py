@@ -36,7 +36,7 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.jit import njit as _njit
-from factors.photometric_host import square_root
+from factors.photometric_host import square_root_kernel
 from factors.robust import KERNELS, RobustKernel
 from factors.track_kernel import track_eval, whitening_2
 
@@ -81,6 +81,15 @@ class Bundle:
     lam_min: float
     lam_max: float
     iters: int = 2
+    p_lam: np.ndarray | None = None
+    p_info: np.ndarray | None = None
+    hll: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.lam)
+        self.p_lam = np.zeros(n) if self.p_lam is None else self.p_lam
+        self.p_info = np.zeros(n) if self.p_info is None else self.p_info
+        self.hll = np.zeros(n) if self.hll is None else self.hll
 
     @property
     def dim(self) -> int:
@@ -93,7 +102,8 @@ def pack(n_bodies: int, landmarks: list[dict], C: np.ndarray, ad_inv: np.ndarray
     """A :class:`Bundle` from per-landmark dicts with ``bodies`` (group body indices, anchor
     first), ``target`` (n,) local body indices (0 = anchor), ``right`` (n,), ``uv``,
     ``vel`` (n, 2), ``off`` (n,), ``basis`` (n, 2, 3), ``a_uv``, ``a_vel`` (2,), ``a_off``,
-    ``lam``. Whitening none (see :func:`set_whitening`)."""
+    ``lam``, optionally a depth prior ``p_lam``, ``p_info`` (whitened information).
+    Whitening none (see :func:`set_whitening`)."""
     if not landmarks:
         raise ValueError("a landmark bundle needs at least one landmark")
     n_obs = np.array([len(lm["uv"]) for lm in landmarks])
@@ -118,7 +128,9 @@ def pack(n_bodies: int, landmarks: list[dict], C: np.ndarray, ad_inv: np.ndarray
                   np.ones(len(landmarks), np.bool_), np.zeros((2 * n, 2)), np.zeros((len(landmarks), 2)),
                   model == "sphere", float(sigma), 0 if robust is None else KERNELS.index(robust.kind),
                   float(robust.k) if robust is not None else 1.0, bool(use_td),
-                  float(lam_bounds[0]), float(lam_bounds[1]), int(iters))
+                  float(lam_bounds[0]), float(lam_bounds[1]), int(iters),
+                  np.array([lm.get("p_lam", 0.0) for lm in landmarks], float),
+                  np.array([lm.get("p_info", 0.0) for lm in landmarks], float))
 
 
 @_njit
@@ -166,9 +178,12 @@ def _depth_terms(r, J, U, dw):
 @_njit
 def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
                   right, uv, vel, off, basis, C, ad_inv, sphere, sigma, kind, kk, U, d, lam,
-                  active, iters, lam_min, lam_max, H, g):
+                  active, p_lam, p_info, hll_out, iters, lam_min, lam_max, H, g, schur=True):
     """Fill ``H`` (D, D) and ``g`` (D,) (zeroed on entry) of the bundle (module docstring),
-    refining ``lam`` in place; returns E. Landmarks with ``active`` False are skipped."""
+    refining ``lam`` in place; returns E. Landmarks with ``active`` False are skipped;
+    ``schur`` False: refine only (H, g untouched, E of the refined residuals). A landmark
+    with ``p_info[i] > 0`` has the depth prior ``p_info (lam - p_lam)^2 / 2`` (whitened
+    units); ``hll_out[i]``: its depth information ``j^T j`` (prior included) at the end."""
     inv = 1.0 / sigma
     D = H.shape[0]
     E = 0.0
@@ -190,6 +205,8 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
             if it == iters:
                 break
             hll, gl = _depth_terms(r, J, Ui, dw)
+            hll += p_info[i]
+            gl += p_info[i] * (li - p_lam[i])
             if not hll > 0.0:
                 break
             new = min(max(li - gl / hll, 0.5 * li, lam_min), 2.0 * li, lam_max)
@@ -197,7 +214,15 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
                 break
             li = new
         lam[i] = li
-        E += _schur_add(r, J, Ui, dw, target[s0:s1], lbodies[lb_start[i]:lb_start[i + 1]], use_td, D, H, g)
+        pres = li - p_lam[i]
+        if not schur:
+            hll, _ = _depth_terms(r, J, Ui, dw)
+            hll_out[i] = hll + p_info[i]
+            E += 0.5 * (np.sum(r * r) + dw[0] * np.sum(Ui[:, 0] * r) ** 2 + dw[1] * np.sum(Ui[:, 1] * r) ** 2
+                        + p_info[i] * pres * pres)
+            continue
+        E += _schur_add(r, J, Ui, dw, target[s0:s1], lbodies[lb_start[i]:lb_start[i + 1]], use_td, D, H, g,
+                        p_info[i], pres, hll_out, i)
     return E
 
 
@@ -216,8 +241,9 @@ def _column_map(lb, ncol, use_td, D):
 
 
 @_njit
-def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g):
-    """Add one landmark's lambda-eliminated H, g onto the group's; return its E."""
+def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i):
+    """Add one landmark's lambda-eliminated H, g onto the group's (depth prior ``pinfo``
+    at residual ``pres``); store its depth information in ``hll_out[i]``; return its E."""
     m, ncol = J.shape[0], J.shape[1]
     cmap = _column_map(lb, ncol, use_td, D)
     P = np.zeros((2, ncol))
@@ -241,7 +267,11 @@ def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g):
         for c in range(ncol):
             hx[c] += dw[q] * P[q, c] * P[q, 0]
             gx[c] += dw[q] * P[q, c] * p[q]
+    hx[0] += pinfo
+    gx[0] += pinfo * pres
+    rr += pinfo * pres * pres
     hll, gl = hx[0], gx[0]
+    hll_out[i] = hll
     if not hll > 0.0:
         hll, gl = 1.0, 0.0
         for c in range(ncol):
@@ -311,8 +341,36 @@ def linearize(bundle: Bundle, bodies: np.ndarray, Tc: np.ndarray, td: float,
     E = bundle_system(np.ascontiguousarray(bodies, float), np.ascontiguousarray(Tc, float), float(td),
                       b.use_td, b.start, b.lb_start, b.lbodies, b.a_uv, b.a_vel, b.a_off, b.target,
                       b.right, b.uv, b.vel, b.off, b.basis, b.C, b.ad_inv, b.sphere, b.sigma, b.kind,
-                      b.kk, b.U, b.d, lam, b.active, b.iters, b.lam_min, b.lam_max, H, g)
+                      b.kk, b.U, b.d, lam, b.active, b.p_lam, b.p_info, b.hll, b.iters, b.lam_min,
+                      b.lam_max, H, g)
     return H, g, float(E)
+
+
+def refine(bundle: Bundle, bodies: np.ndarray, Tc: np.ndarray, td: float, iters: int) -> float:
+    """Refine ``bundle.lam`` in place at ``bodies``, ``Tc``, ``td`` (``iters`` Gauss-Newton
+    steps, no elimination); returns the energy at the refined depths."""
+    b = bundle
+    H, g = np.zeros((1, 1)), np.zeros(1)
+    return float(bundle_system(np.ascontiguousarray(bodies, float), np.ascontiguousarray(Tc, float),
+                               float(td), b.use_td, b.start, b.lb_start, b.lbodies, b.a_uv, b.a_vel,
+                               b.a_off, b.target, b.right, b.uv, b.vel, b.off, b.basis, b.C, b.ad_inv,
+                               b.sphere, b.sigma, b.kind, b.kk, b.U, b.d, b.lam, b.active, b.p_lam,
+                               b.p_info, b.hll, int(iters),
+                               b.lam_min, b.lam_max, H, g, False))
+
+
+def square_root(H: np.ndarray, g: np.ndarray, E: float, rel_eps: float = 1e-9
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(r (D + 1,), J (D + 1, D)) with J^T J = H (+ eps), J^T r = g, 0.5 |r|^2 = E:
+    ``factors.photometric_host.square_root_kernel`` of the Jacobi-equilibrated
+    ``S H S`` (``S = diag(H)^-1/2``), unscaled: the columns' units differ (radians,
+    metres, seconds) and the regularization ``rel_eps`` is then relative per column."""
+    dg = np.diag(H).copy()
+    dg[~(dg > 0)] = 1.0
+    s = 1.0 / np.sqrt(dg)
+    r, J = square_root_kernel(np.ascontiguousarray(H * s[:, None] * s[None, :]), g * s, float(E),
+                              float(rel_eps), 0.0)
+    return r, J / s[None, :]
 
 
 def bundle_kinds(bundle: Bundle) -> list:

@@ -57,11 +57,13 @@ class EliminatedLandmarks(LandmarkManager):
     # ------------------------------------------------------------ bookkeeping
     def reset(self) -> None:
         super().reset()
+        for tr in self.tracks.values():
+            tr.lam_prior = None
         self.groups = {}
         self._pending_groups = []
 
     def _set_depth(self, tr: Track, lam: float, v: gtsam.Values) -> None:
-        tr.lam = float(lam)
+        tr.lam, tr.lam_prior = float(lam), None
 
     def _lam(self, tr: Track) -> float | None:
         return tr.lam if tr.key is not None else None
@@ -72,6 +74,17 @@ class EliminatedLandmarks(LandmarkManager):
             for tr, lam, on in zip(members, bundle.lam, bundle.active):
                 if on:
                     tr.lam = float(lam)
+
+    def _refine_at(self, values: gtsam.Values) -> None:
+        """Refine every factor's inverse depths at the estimate ``values`` (the factors
+        refine them at their linearization point, which the update has since moved), then
+        copy them into the tracks."""
+        T_b_c = values.atPose3(graph.EXTRINSIC).matrix()
+        td = float(values.atVector(graph.TD)[0])
+        for members, bundle, keys in self.groups.values():
+            bodies = np.array([values.atPose3(x).matrix() for x in keys[1:1 + bundle.n_bodies]])
+            landmark_schur.refine(bundle, bodies, T_b_c, td if bundle.use_td else 0.0, 3)
+        self._sync()
 
     def _index(self, a: int) -> list[int]:
         members = self.groups[a][0] if a in self.groups else []
@@ -101,6 +114,7 @@ class EliminatedLandmarks(LandmarkManager):
         old = {a: self._index(a) for a in self.groups}
         final: dict[int, list[tuple[Track, list[int]]]] = {}
         dirty: set[int] = set()
+        self._live_of: dict[int, Track] = {}
         for a in sorted(self.groups):
             if a in leave:      # dead members go into the final factor with all they saw
                 final[a] = [(tr, tr.frames()) for tr in self.groups[a][0]
@@ -133,11 +147,34 @@ class EliminatedLandmarks(LandmarkManager):
             entries = [(tr, fr) for tr, fr in final[a] if len(fr) >= 2 or any(
                 tr.obs[f].right_uv is not None for f in fr)]
             if entries:
-                g.add(self._bundle_factor(entries, k, pred)[0])
+                self._final_factor(entries, k, pred, g)
         for a in sorted(dirty - leave):
             removals += old.get(a, [])
             self._rebuild(a, k, pred, g)
         return sorted(set(removals))
+
+    def _final_factor(self, entries: list, k: int, pred: gtsam.NavState,
+                      g: gtsam.NonlinearFactorGraph) -> None:
+        """The leaving anchor's final factor (dead tracks and farewells) and, with
+        ``VisionConfig.reanchor_depth_prior``, each re-anchored track's depth prior: its
+        farewell's depth information at the estimate (the leaving poses held)."""
+        vc = self.est.cfg.vision
+        fw = [i for i, (tr, _) in enumerate(entries) if tr.lid in self._live_of]
+        keep = entries if vc.farewell_poses else [e for i, e in enumerate(entries) if i not in fw]
+        if keep:
+            g.add(self._bundle_factor(keep, k, pred)[0])
+        if not (vc.reanchor_depth_prior and fw):
+            return
+        sub = [entries[i] for i in fw]
+        _, bundle, keys = self._bundle_factor(sub, k, pred)
+        frames = sorted({f for _, fr in sub for f in fr})
+        bodies = np.array([self._pose(f, k, pred).matrix() for f in frames])
+        T_b_c, td = self._calib_cache
+        landmark_schur.refine(bundle, bodies, T_b_c.matrix(), td if bundle.use_td else 0.0, 3)
+        for j, (tr, _) in enumerate(sub):
+            live = self._live_of[tr.lid]
+            if bundle.hll[j] > 0 and np.isfinite(bundle.lam[j]):
+                live.lam_prior = (float(bundle.lam[j]), float(bundle.hll[j]))
 
     def _rebuild(self, a: int, k: int, pred: gtsam.NavState, g: gtsam.NonlinearFactorGraph) -> None:
         """Replace group a's factor by one over its current members (none: dropped)."""
@@ -159,9 +196,9 @@ class EliminatedLandmarks(LandmarkManager):
         transferred from the current point); its leaving observations become a farewell
         entry of the old anchor's final factor (module docstring)."""
         p_w = self._point_w(tr)
-        old_anchor = tr.anchor
+        old_anchor, lam_old, prior_old = tr.anchor, tr.lam, tr.lam_prior
         gone = {f: tr.obs.pop(f) for f in sorted(tr.obs) if f in leave}
-        tr.key = tr.anchor = None
+        tr.key = tr.anchor = tr.lam_prior = None
         tr.factor_indices = []
         if p_w is None or not tr.obs:
             return
@@ -169,7 +206,11 @@ class EliminatedLandmarks(LandmarkManager):
         if tr.key is None or not self.est.cfg.vision.marginalize_reanchored:
             return
         anchor = dataclasses.replace(tr.obs[tr.anchor], right_uv=None, right_velocity=None)
-        farewell = Track(tr.lid, {tr.anchor: anchor, **gone}, tr.key, tr.anchor, lam=tr.lam)
+        prior = None
+        if prior_old is not None and lam_old > 0:     # relative depth information carried over
+            prior = (tr.lam * prior_old[0] / lam_old, prior_old[1] * (lam_old / tr.lam) ** 2)
+        farewell = Track(tr.lid, {tr.anchor: anchor, **gone}, tr.key, tr.anchor, lam=tr.lam, lam_prior=prior)
+        self._live_of[tr.lid] = tr
         final.setdefault(old_anchor, []).append((farewell, [tr.anchor, *gone]))
 
     # -------------------------------------------------------------- factors
@@ -210,14 +251,15 @@ class EliminatedLandmarks(LandmarkManager):
         uv, vel_all, target, right, offset, _, _ = _layout(obs, v0, off, self._rig, rvel, vc.td_velocity_max)
         return dict(bodies=[pos[f] for f in fr], target=target, right=right, uv=uv, vel=vel_all,
                     off=offset, basis=tangent_basis(uv), a_uv=obs[0].uv, a_vel=v0[0], a_off=float(off[0]),
-                    lam=tr.lam)
+                    lam=tr.lam, p_lam=tr.lam_prior[0] if tr.lam_prior else 0.0,
+                    p_info=tr.lam_prior[1] if tr.lam_prior else 0.0)
 
     # --------------------------------------------------------------- outliers
     def outlier_removals(self, values: gtsam.Values
                          ) -> tuple[gtsam.NonlinearFactorGraph, dict, list[int], int]:
         """As ``LandmarkManager.outlier_removals`` with the factors' inverse depths; each
         affected factor is re-added with its rejected landmarks switched off."""
-        self._sync()
+        self._refine_at(values)
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         g, removals, n = gtsam.NonlinearFactorGraph(), [], 0

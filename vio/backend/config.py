@@ -189,7 +189,9 @@ class VisionConfig:
     min_depth_m: float = 0.1
     max_depth_m: float = 100.0
     eliminate_depth: bool = False
-    depth_iters: int = 2
+    depth_iters: int = 0
+    reanchor_depth_prior: bool = True
+    farewell_poses: bool = True
 
 
 @dataclass(frozen=True)

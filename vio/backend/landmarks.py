@@ -36,7 +36,9 @@ class Track:
     ``td_shift[f]``: (vel (2,) 1/s, time offset s) of the cam0 observation in keyframe f
     as its current factor shifts it, ``uv - (td + offset) * vel`` (seed 004).
     ``lam``: the inverse depth (1/m) when it is eliminated inside the factor
-    (``VisionConfig.eliminate_depth``, ``vio.backend.bundles``) instead of a variable."""
+    (``VisionConfig.eliminate_depth``, ``vio.backend.bundles``) instead of a variable;
+    ``lam_prior`` (mean 1/m, information in whitened units): what the observations of
+    keyframes that left the window said about it."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
@@ -47,6 +49,7 @@ class Track:
     waited: int = 0
     rejected: bool = False
     lam: float = 0.0
+    lam_prior: tuple[float, float] | None = None
 
     def frames(self) -> list[int]:
         return sorted(self.obs)
