@@ -165,8 +165,11 @@ class VisionConfig:
     tracks keeps only the window's last 2.5 s of each track.
     ``eliminate_depth``: landmarks keep their inverse depth inside the factor instead of
     as a graph variable: one factor per anchor keyframe over all landmarks anchored there,
-    depths refined and Schur-eliminated at each linearization (``vio.backend.bundles``,
-    ``factors.landmark_schur``); ``depth_iters`` Gauss-Newton steps per linearization."""
+    depths Schur-eliminated at each linearization (``vio.backend.bundles``,
+    ``factors.landmark_schur``), refined at the estimate after each update and by
+    ``depth_iters`` Gauss-Newton steps inside each linearization; ``farewell_poses`` /
+    ``reanchor_depth_prior``: what a re-anchored landmark's leaving observations pass on
+    (pose information through the final factor / a depth prior; see the module)."""
 
     model: Literal["pinhole", "sphere"] = "pinhole"
     use_td: bool = True
