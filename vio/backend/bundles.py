@@ -248,7 +248,13 @@ class EliminatedLandmarks(LandmarkManager):
         return landmark_schur.bundle_factor(keys, bundle), bundle, keys
 
     def _landmark(self, tr: Track, fr: list[int], k: int, pred: gtsam.NavState, pos: dict) -> dict:
-        """``landmark_schur.pack``'s entry of one track over frames ``fr`` (anchor first)."""
+        """``landmark_schur.pack``'s entry of one track over frames ``fr`` (anchor first).
+        A track no longer observed keeps the arrays of its last factor (td velocities and
+        shifts included, as the variable mode keeps a dead landmark's factor)."""
+        prior = dict(lam=tr.lam, p_lam=tr.lam_prior[0] if tr.lam_prior else 0.0,
+                     p_info=tr.lam_prior[1] if tr.lam_prior else 0.0, bodies=[pos[f] for f in fr])
+        if tr.entry is not None and tr.entry[0] == tuple(fr) and k not in tr.obs:
+            return {**tr.entry[1], **prior}
         vc = self.est.cfg.vision
         vel = rvel = None
         if vc.td_velocity == "predicted" and tr.lam > 0:
@@ -256,10 +262,10 @@ class EliminatedLandmarks(LandmarkManager):
         obs = [tr.obs[f] for f in fr]
         v0, off = graph._cam0_shifts(tr, fr, obs, vel, vc.td_velocity_max, self.est.cam.line_time_s)
         uv, vel_all, target, right, offset, _, _ = _layout(obs, v0, off, self._rig, rvel, vc.td_velocity_max)
-        return dict(bodies=[pos[f] for f in fr], target=target, right=right, uv=uv, vel=vel_all,
-                    off=offset, basis=tangent_basis(uv), a_uv=obs[0].uv, a_vel=v0[0], a_off=float(off[0]),
-                    lam=tr.lam, p_lam=tr.lam_prior[0] if tr.lam_prior else 0.0,
-                    p_info=tr.lam_prior[1] if tr.lam_prior else 0.0)
+        arrays = dict(target=target, right=right, uv=uv, vel=vel_all, off=offset, basis=tangent_basis(uv),
+                      a_uv=obs[0].uv, a_vel=v0[0], a_off=float(off[0]))
+        tr.entry = (tuple(fr), arrays)
+        return {**arrays, **prior}
 
     # --------------------------------------------------------------- outliers
     def outlier_removals(self, values: gtsam.Values

@@ -38,7 +38,8 @@ class Track:
     ``lam``: the inverse depth (1/m) when it is eliminated inside the factor
     (``VisionConfig.eliminate_depth``, ``vio.backend.bundles``) instead of a variable;
     ``lam_prior`` (mean 1/m, information in whitened units): what the observations of
-    keyframes that left the window said about it."""
+    keyframes that left the window said about it; ``entry``: (frames, arrays) of its last
+    eliminated-depth factor, reused while it is no longer observed."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
@@ -50,6 +51,7 @@ class Track:
     rejected: bool = False
     lam: float = 0.0
     lam_prior: tuple[float, float] | None = None
+    entry: tuple | None = None
 
     def frames(self) -> list[int]:
         return sorted(self.obs)
