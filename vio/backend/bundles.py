@@ -183,8 +183,9 @@ class EliminatedLandmarks(LandmarkManager):
         landmark_schur.refine(bundle, bodies, T_b_c.matrix(), td if bundle.use_td else 0.0, 3)
         for j, (tr, _) in enumerate(sub):
             live = self._live_of[tr.lid]
-            if bundle.hll[j] > 0 and np.isfinite(bundle.lam[j]):
-                live.lam_prior = (float(bundle.lam[j]), float(bundle.hll[j]))
+            lam, h = float(bundle.lam[j]), float(bundle.hll[j])
+            if h > 0 and np.isfinite(lam):
+                live.lam_prior = (lam, 1.0 / (1.0 / h + (vc.reanchor_prior_sigma * lam) ** 2))
 
     def _rebuild(self, a: int, k: int, pred: gtsam.NavState, g: gtsam.NonlinearFactorGraph) -> None:
         """Replace group a's factor by one over its current members (none: dropped)."""
@@ -206,7 +207,7 @@ class EliminatedLandmarks(LandmarkManager):
         transferred from the current point); its leaving observations become a farewell
         entry of the old anchor's final factor (module docstring)."""
         p_w = self._point_w(tr)
-        old_anchor = tr.anchor
+        old_anchor, lam_old, prior_old = tr.anchor, tr.lam, tr.lam_prior
         gone = {f: tr.obs.pop(f) for f in sorted(tr.obs) if f in leave}
         tr.key = tr.anchor = tr.lam_prior = None
         tr.factor_indices = []
@@ -216,7 +217,10 @@ class EliminatedLandmarks(LandmarkManager):
         if tr.key is None or not self.est.cfg.vision.marginalize_reanchored:
             return
         anchor = dataclasses.replace(tr.obs[tr.anchor], right_uv=None, right_velocity=None)
-        farewell = Track(tr.lid, {tr.anchor: anchor, **gone}, tr.key, tr.anchor, lam=tr.lam)
+        prior = None
+        if prior_old is not None and lam_old > 0 and self.est.cfg.vision.reanchor_prior_sigma > 0:
+            prior = (tr.lam * prior_old[0] / lam_old, prior_old[1] * (lam_old / tr.lam) ** 2)
+        farewell = Track(tr.lid, {tr.anchor: anchor, **gone}, tr.key, tr.anchor, lam=tr.lam, lam_prior=prior)
         self._live_of[tr.lid] = tr
         final.setdefault(old_anchor, []).append((farewell, [tr.anchor, *gone]))
 
