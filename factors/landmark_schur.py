@@ -181,7 +181,8 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
                   active, p_lam, p_info, hll_out, iters, lam_min, lam_max, H, g, schur=True):
     """Fill ``H`` (D, D) and ``g`` (D,) (zeroed on entry) of the bundle (module docstring),
     refining ``lam`` in place; returns E. Landmarks with ``active`` False are skipped;
-    ``schur`` False: refine only (H, g untouched, E of the refined residuals). A landmark
+    ``schur`` False: refine only (H, g untouched; E and ``hll_out`` at the last evaluation,
+    before the last step; at least one step). A landmark
     with ``p_info[i] > 0`` has the depth prior ``p_info (lam - p_lam)^2 / 2`` (whitened
     units); ``hll_out[i]``: its depth information ``j^T j`` (prior included) at the end."""
     inv = 1.0 / sigma
@@ -196,13 +197,17 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
         for q in range(2):
             dw[q] = 2.0 * d[i, q] + d[i, q] * d[i, q]
         li = lam[i]
-        for it in range(iters + 1):
+        # schur: `iters` steps, then the evaluation the elimination uses; refine only:
+        # `iters` steps, the last one not re-evaluated (E, hll_out: before it)
+        n_eval = iters + 1 if schur else max(iters, 1)
+        ei = 0.0
+        for it in range(n_eval):
             r, J, _ = _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
                                 a_off, target, right, uv, vel, off, basis, C, ad_inv, sphere, sigma,
                                 kind, kk, li)
             r *= inv
             J *= inv
-            if it == iters:
+            if schur and it == iters:
                 break
             hll, gl = _depth_terms(r, J, Ui, dw)
             hll += p_info[i]
@@ -210,17 +215,18 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
             if not hll > 0.0:
                 break
             new = min(max(li - gl / hll, 0.5 * li, lam_min), 2.0 * li, lam_max)
-            if abs(new - li) <= 1e-12 * li:
+            if not schur:
+                hll_out[i] = hll
+                ei = 0.5 * (np.sum(r * r) + dw[0] * np.sum(Ui[:, 0] * r) ** 2
+                            + dw[1] * np.sum(Ui[:, 1] * r) ** 2 + p_info[i] * (li - p_lam[i]) ** 2)
+            if abs(new - li) <= 1e-9 * li:
                 break
             li = new
         lam[i] = li
-        pres = li - p_lam[i]
         if not schur:
-            hll, _ = _depth_terms(r, J, Ui, dw)
-            hll_out[i] = hll + p_info[i]
-            E += 0.5 * (np.sum(r * r) + dw[0] * np.sum(Ui[:, 0] * r) ** 2 + dw[1] * np.sum(Ui[:, 1] * r) ** 2
-                        + p_info[i] * pres * pres)
+            E += ei
             continue
+        pres = li - p_lam[i]
         E += _schur_add(r, J, Ui, dw, target[s0:s1], lbodies[lb_start[i]:lb_start[i + 1]], use_td, D, H, g,
                         p_info[i], pres, hll_out, i)
     return E

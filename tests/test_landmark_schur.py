@@ -13,7 +13,7 @@ import pytest
 from cases_projection import random_pose
 from factors import track_kernel
 from factors.anchor_noise import AnchorWhitening
-from factors.landmark_schur import bundle_factor, linearize, pack, set_whitening
+from factors.landmark_schur import bundle_factor, linearize, pack, refine, set_whitening
 from factors.projection import tangent_basis
 from factors.robust import RobustKernel
 
@@ -187,3 +187,23 @@ def test_refinement_converges_and_bundle_factor_square_root():
     assert np.abs(A.T @ A - H).max() <= 1e-6 * np.abs(H).max()
     assert np.abs(A.T @ (-rhs) - g).max() <= 1e-6 * max(1.0, np.abs(g).max())
     assert abs(f.error(v) - E1) <= 1e-6 * max(1.0, E1)
+
+
+def test_refine_matches_the_elimination_and_reports_depth_information():
+    """``refine`` (no elimination) reaches the depths the factor's own refinement reaches,
+    its energy is the eliminated one there, and ``hll`` is the full problem's lambda
+    information (with a depth prior added to one landmark)."""
+    b, bodies, Tc, td, mats = _bundle(6, robust=RobustKernel("huber", 3.0), iters=0)
+    b.p_lam[1], b.p_info[1] = b.lam[1] * 1.1, 50.0
+    c = pack_copy(b)
+    E_ref = refine(b, mats, Tc.matrix(), td, 20)
+    c.iters = 20
+    linearize(c, mats, Tc.matrix(), td)
+    assert np.allclose(b.lam, c.lam, rtol=1e-7)
+    b.iters = 0
+    _, _, E_lin = linearize(b, mats, Tc.matrix(), td)
+    assert abs(E_ref - E_lin) <= 1e-6 * E_lin
+    Hf, _, _ = _full(b, mats, Tc, td, RobustKernel("huber", 3.0))
+    hll = np.diag(Hf)[b.dim:].copy()
+    hll[1] += 50.0
+    assert np.allclose(b.hll, hll, rtol=1e-6)
