@@ -96,6 +96,18 @@ class EliminatedLandmarks(LandmarkManager):
             landmark_schur.refine(bundle, bodies, T_b_c, td if bundle.use_td else 0.0, 3)
         self._sync()
 
+    def scale_depths(self, f: float) -> None:
+        """Multiply every inverse depth (tracks, factors, depth priors) by ``f``: the
+        state moved by a similarity of scale 1/f (``vio.backend.regauge``)."""
+        for tr in self.tracks.values():
+            tr.lam *= f
+            if tr.lam_prior is not None:
+                tr.lam_prior = (tr.lam_prior[0] * f, tr.lam_prior[1] / (f * f))
+        for _, bundle, _ in self.groups.values():
+            bundle.lam *= f
+            bundle.p_lam *= f
+            bundle.p_info /= f * f
+
     def _index(self, a: int) -> list[int]:
         members = self.groups[a][0] if a in self.groups else []
         return sorted({i for tr in members for i in tr.factor_indices})
@@ -104,8 +116,9 @@ class EliminatedLandmarks(LandmarkManager):
         idx = list(indices)
         for a, pos in self._pending_groups:
             if a in self.groups:
-                for tr in self.groups[a][0]:
-                    tr.factor_indices = [int(idx[pos])]
+                members, bundle, _ = self.groups[a]
+                for tr, on in zip(members, bundle.active):
+                    tr.factor_indices = [int(idx[pos])] if on else []
         self._pending_groups = []
         self._pending = []
 
