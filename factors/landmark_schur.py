@@ -17,9 +17,13 @@ Gauss-Newton steps on its whitened, reweighted residuals, kept inside
 
 with ``j`` the landmark's lambda column, ``J_x`` the rest, all divided by the observation
 sigma (the factor uses a unit noise model). The factor returns the square-root form of
-``factors.photometric_host.square_root`` (J^T J = H + eps I, J^T r = g, 0.5 |r|^2 = E).
+``factors.photometric_host.square_root_kernel`` (J^T J = H + eps, J^T r = g, 0.5 |r|^2 = E).
 ``H``, ``g`` are those of the full problem (lambda as a variable) with lambda eliminated
-at its refined value (tests/test_landmark_schur.py).
+at its refined value (tests/test_landmark_schur.py and the shared suite's
+``REDUCED_CASES``, tests/cases_landmark_schur.py). :func:`square_root` equilibrates the
+columns (``diag(H)^-1/2``) before the Cholesky; :func:`refine` runs the depth steps alone
+(the backend refines at the estimate after each update and linearizes with ``iters`` 0).
+A landmark may carry a depth prior (``p_lam``, ``p_info``), added to its lambda row.
 
 The per-landmark Schur accumulation uses the row structure: row pair o of a landmark is
 non-zero only in lambda, ``T_b_c``, the anchor body, the body of its observation and td,
@@ -247,6 +251,33 @@ def _column_map(lb, ncol, use_td, D):
 
 
 @_njit
+def _add_row_pairs(J, target, cmap, use_td, H):
+    """``H += J_x^T J_x`` summed over each row pair's non-zero columns (``T_b_c``, the anchor,
+    the observation's own body, td), scattered through ``cmap``."""
+    ncol = J.shape[1]
+    nz = np.empty(20, np.int64)
+    for o in range(target.shape[0]):
+        k = 0
+        for c in range(1, 13):
+            nz[k] = c
+            k += 1
+        t = target[o]
+        if t > 0:
+            for e in range(6):
+                nz[k] = 7 + 6 * t + e
+                k += 1
+        if use_td:
+            nz[k] = ncol - 1
+            k += 1
+        for x in range(k):
+            a = nz[x]
+            ga = cmap[a]
+            for y in range(k):
+                b = nz[y]
+                H[ga, cmap[b]] += J[2 * o, a] * J[2 * o, b] + J[2 * o + 1, a] * J[2 * o + 1, b]
+
+
+@_njit
 def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i):
     """Add one landmark's lambda-eliminated H, g onto the group's (depth prior ``pinfo``
     at residual ``pres``); store its depth information in ``hll_out[i]``; return its E."""
@@ -282,28 +313,7 @@ def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i
         hll, gl = 1.0, 0.0
         for c in range(ncol):
             hx[c] = 0.0
-    # J^T J over each row pair's non-zero columns
-    nz = np.empty(20, np.int64)
-    ntd = 1 if use_td else 0
-    for o in range(target.shape[0]):
-        k = 0
-        for c in range(1, 13):
-            nz[k] = c
-            k += 1
-        t = target[o]
-        if t > 0:
-            for e in range(6):
-                nz[k] = 7 + 6 * t + e
-                k += 1
-        if ntd:
-            nz[k] = ncol - 1
-            k += 1
-        for x in range(k):
-            a = nz[x]
-            ga = cmap[a]
-            for y in range(k):
-                b = nz[y]
-                H[ga, cmap[b]] += J[2 * o, a] * J[2 * o, b] + J[2 * o + 1, a] * J[2 * o + 1, b]
+    _add_row_pairs(J, target, cmap, use_td, H)
     # whitening (rank 2) and elimination (rank 1), dense
     for a in range(1, ncol):
         ga = cmap[a]
