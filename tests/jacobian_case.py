@@ -29,3 +29,22 @@ class JacobianCase:
     build: Callable[[np.random.Generator], tuple[gtsam.NonlinearFactor, gtsam.Values,
                                                   Callable, list]]
     degenerate: bool = False
+
+
+@dataclass(frozen=True)
+class ReducedCase:
+    """A factor whose variables' companions (inverse depths) are eliminated inside it, so
+    its residual is a square root of the reduced quadratic rather than a function whose
+    derivative is its Jacobian (``factors.landmark_schur``, ``factors.photometric_host``).
+
+    ``build(rng)`` returns the factor, the values of its keys, the key kinds, ``full(values)
+    -> (H, g)`` of the full point-wise problem with the eliminated variables as the last
+    columns and ``n_elim`` their number, and ``energy(values)`` the energy minimized over
+    the eliminated variables (no robust kernel), for the numerical gradient. The suite
+    checks ``A^T A`` and ``-A^T b`` of ``factor.linearize(values)`` against the Schur
+    complement of ``full`` and that gradient against central differences of ``energy``.
+    """
+
+    name: str
+    build: Callable[[np.random.Generator], tuple]
+    degenerate: bool = False

@@ -12,6 +12,12 @@ degenerate (fixed seeds) states:
   right-hand side equal the noise-whitened analytic ones (``gtsam.noiseModel.Robust``
   included: ``sqrt(w)`` times the base whitening) to ``1e-9`` relative.
 
+Factors with variables eliminated inside (``REDUCED_CASES``, ``jacobian_case.ReducedCase``:
+their residual is a square root of the reduced quadratic) are checked instead against the
+full point-wise problem: ``A^T A`` and ``-A^T b`` of ``linearize`` equal its Schur
+complement (``REDUCED_TOL`` relative), and that gradient equals central differences of the
+energy minimized over the eliminated variables (``REDUCED_GRAD_TOL``).
+
 The worst normalized errors seen are printed at the end of the module (``-s``/``-rA``).
 """
 
@@ -29,6 +35,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 TOL = 1e-6
+REDUCED_TOL = 1e-6
+REDUCED_GRAD_TOL = 1e-4
 LIN_TOL = 1e-9
 DELTA = 1e-5
 RANDOM_EXAMPLES = 12
@@ -37,8 +45,9 @@ DEGENERATE_SEEDS = (0, 1, 2)
 _HERE = Path(__file__).resolve().parent
 
 
-def _collect_cases() -> list:
-    """``(module, case)`` params from every ``cases_*.py``; an import error becomes a failing param."""
+def _collect_cases(attr: str = "CASES") -> list:
+    """``(module, case)`` params from every ``cases_*.py``'s ``attr``; an import error becomes
+    a failing param (reported once, under ``CASES``)."""
     params = []
     for info in sorted(pkgutil.iter_modules([str(_HERE)]), key=lambda i: i.name):
         if not info.name.startswith("cases_"):
@@ -46,17 +55,20 @@ def _collect_cases() -> list:
         try:
             mod = importlib.import_module(info.name)
         except Exception as exc:  # noqa: BLE001 - reported as a failing test, not a crash
-            params.append(pytest.param(info.name, exc, id=f"{info.name}-IMPORT-ERROR"))
+            if attr == "CASES":
+                params.append(pytest.param(info.name, exc, id=f"{info.name}-IMPORT-ERROR"))
             continue
-        for case in getattr(mod, "CASES", []):
+        for case in getattr(mod, attr, []):
             params.append(pytest.param(info.name, case, id=f"{info.name}-{case.name}"))
     return params
 
 
 ALL = _collect_cases()
+REDUCED = _collect_cases("REDUCED_CASES")
 RANDOM = [p for p in ALL if isinstance(p.values[1], Exception) or not p.values[1].degenerate]
 DEGENERATE = [p for p in ALL if not isinstance(p.values[1], Exception) and p.values[1].degenerate]
-WORST = {"numeric": (-1.0, "nothing checked"), "linearize": (-1.0, "nothing checked")}
+WORST = {"numeric": (-1.0, "nothing checked"), "linearize": (-1.0, "nothing checked"),
+         "reduced": (-1.0, "nothing checked")}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -145,8 +157,55 @@ def test_degenerate_state(module: str, case, seed: int) -> None:
     check_case(module, case, seed)
 
 
+def _schur(H: np.ndarray, g: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Eliminate the last n variables of the quadratic (H, g)."""
+    m = H.shape[0] - n
+    K = np.linalg.solve(H[m:, m:], H[m:, :m])
+    return H[:m, :m] - H[:m, m:] @ K, g[:m] - K.T @ g[m:]
+
+
+def check_reduced_case(name: str, case, seed: int) -> None:
+    """A ``jacobian_case.ReducedCase``: ``linearize`` equals the Schur complement of the
+    full problem (``REDUCED_TOL`` relative), its gradient the central differences of the
+    minimized energy on the retraction (``REDUCED_GRAD_TOL``)."""
+    rng = np.random.default_rng(seed)
+    factor, values, kinds, full, energy = case.build(rng)
+    keys = list(factor.keys())
+    assert len(keys) == len(kinds)
+    A, b = factor.linearize(values).jacobian()
+    H, g = A.T @ A, -A.T @ b
+    Hf, gf, n = full(values)
+    Hs, gs = _schur(Hf, gf, n)
+    err = max(np.abs(H - Hs).max() / np.abs(Hs).max(), np.abs(g - gs).max() / max(1.0, np.abs(gs).max()))
+    _note("reduced", err, f"{case.name} seed={seed}")
+    assert err <= REDUCED_TOL, f"{case.name}: reduced information/gradient differ by {err:.2e}"
+    num, c = np.zeros_like(g), 0
+    for key, kind in zip(keys, kinds):
+        x0 = _read(values, key, kind)
+        for j in range(_tangent_dim(kind)):
+            out = []
+            for s in (DELTA, -DELTA):
+                v = gtsam.Values(values)
+                dx = np.zeros(_tangent_dim(kind))
+                dx[j] = s
+                v.update(key, x0.retract(dx) if kind == "pose3" else x0 + dx)
+                out.append(energy(v))
+            num[c] = (out[0] - out[1]) / (2 * DELTA)
+            c += 1
+    err = np.abs(g - num).max() / max(1.0, np.abs(num).max())
+    _note("reduced", err, f"{case.name} seed={seed} (gradient)")
+    assert err <= REDUCED_GRAD_TOL, f"{case.name}: gradient vs central differences {err:.2e}"
+
+
+@pytest.mark.parametrize(("module", "case"), REDUCED)
+@pytest.mark.parametrize("seed", DEGENERATE_SEEDS)
+def test_reduced_case(module: str, case, seed: int) -> None:
+    check_reduced_case(module, case, seed)
+
+
 def test_cases_were_collected() -> None:
     """The suite must not silently pass with nothing to check."""
     names = {p.values[0] for p in ALL}
     assert "cases_projection" in names
+    assert {p.values[0] for p in REDUCED} >= {"cases_landmark_schur"}
     assert len(ALL) >= 20

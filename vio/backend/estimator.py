@@ -26,6 +26,7 @@ from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.regauge import ScaleRefiner
 from vio.backend.td_reanchor import maybe_reanchor_td
+from vio.backend.bundles import EliminatedLandmarks
 from vio.backend.tracks import LandmarkManager
 from vio.imu import KeyframeRates, bridge_params, combined_params, integrate, integrate_still
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
@@ -112,7 +113,7 @@ class Estimator:
         self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
         self.td0 = 0.0  # residual td prior mean (the sync layer applies td0_s)
         self.td_applied_s = td0_s
-        self.lm = LandmarkManager(self)
+        self.lm = (EliminatedLandmarks if cfg.vision.eliminate_depth else LandmarkManager)(self)
         self.values = gtsam.Values()
         self.k = -1
         self.kf_t: dict[int, int] = {}

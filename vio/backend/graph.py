@@ -290,18 +290,21 @@ def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values,
     return np.where(p_c[:, 2] > 1e-6, err, np.inf)
 
 
-def worst_reprojection_errors(tracks: list[Track], values: gtsam.Values, table: tuple) -> np.ndarray:
+def worst_reprojection_errors(tracks: list[Track], values: gtsam.Values, table: tuple,
+                              lams: np.ndarray | None = None) -> np.ndarray:
     """For each track, the largest of its :func:`reprojection_errors` over all its frames
     (0 where it has no observation besides the first), computed for all tracks at once:
     one pass of array arithmetic instead of ~10 small numpy calls per track. ``table``: a
     :func:`camera_table` covering every frame of the tracks; each track's inverse depth
-    must be positive (the caller rejects the others)."""
+    must be positive (the caller rejects the others); ``lams`` (n,): the inverse depths
+    (default: the tracks' keys in ``values``)."""
     pos, R, t = table
     td = float(values.atVector(TD)[0]) if values.exists(TD) else 0.0
     uv, vel, off, shifted, fpos, owner, first = [], [], [], [], [], [], []
-    lam = np.empty(len(tracks))
+    lam = np.empty(len(tracks)) if lams is None else np.asarray(lams, float)
     for i, tr in enumerate(tracks):
-        lam[i] = values.atVector(tr.key)[0]
+        if lams is None:
+            lam[i] = values.atVector(tr.key)[0]
         frames = tr.frames()
         first.append(len(fpos))
         for f in frames:

@@ -34,7 +34,12 @@ class Track:
     (anchored in keyframe ``anchor``), and the smoother indices of its factors
     (one factor per landmark; with stereo it carries the cam1 observations too).
     ``td_shift[f]``: (vel (2,) 1/s, time offset s) of the cam0 observation in keyframe f
-    as its current factor shifts it, ``uv - (td + offset) * vel`` (seed 004)."""
+    as its current factor shifts it, ``uv - (td + offset) * vel`` (seed 004).
+    ``lam``: the inverse depth (1/m) when it is eliminated inside the factor
+    (``VisionConfig.eliminate_depth``, ``vio.backend.bundles``) instead of a variable;
+    ``lam_prior`` (mean 1/m, information in whitened units): what the observations of
+    keyframes that left the window said about it; ``entry``: (frames, arrays) of its last
+    eliminated-depth factor, reused while it is no longer observed."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
@@ -44,6 +49,9 @@ class Track:
     td_shift: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
     waited: int = 0
     rejected: bool = False
+    lam: float = 0.0
+    lam_prior: tuple[float, float] | None = None
+    entry: tuple | None = None
 
     def frames(self) -> list[int]:
         return sorted(self.obs)

@@ -103,7 +103,15 @@ def apply_similarity(est: "Estimator", sim: Similarity) -> None:
         g.add(_factor(f, sim, lin))
         order.append(j)
     new = est._new_smoother()
-    new.update(g, sim.values(vals), stamps)
+    rescale = getattr(est.lm, "scale_depths", None)   # inverse depths kept outside Values
+    if rescale is not None:
+        rescale(1.0 / sim.s)
+    try:
+        new.update(g, sim.values(vals), stamps)
+    except RuntimeError:
+        if rescale is not None:
+            rescale(sim.s)
+        raise
     idx = list(new.getISAM2Result().getNewFactorsIndices())
     remap = dict(zip(order, (int(i) for i in idx)))
     for tr in est.lm.tracks.values():

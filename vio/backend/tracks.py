@@ -173,10 +173,8 @@ class LandmarkManager:
 
     def _point_w(self, tr: Track) -> np.ndarray | None:
         vals = self.est.values
-        if tr.key is None or not vals.exists(tr.key):
-            return None
-        lam = float(vals.atVector(tr.key)[0])
-        if lam <= 0:
+        lam = self._lam(tr)
+        if lam is None or lam <= 0:
             return None
         a = tr.obs[tr.anchor]
         T = vals.atPose3(graph.X(tr.anchor)).compose(vals.atPose3(graph.EXTRINSIC))
@@ -192,7 +190,7 @@ class LandmarkManager:
         if vc.min_depth_m <= z <= vc.max_depth_m:
             tr.key = self._new_key()
             tr.anchor = a
-            v.insert(tr.key, np.array([1.0 / z]))
+            self._set_depth(tr, 1.0 / z, v)
 
     def _add_factor(self, tr: Track, g: gtsam.NonlinearFactorGraph, k: int, pred: gtsam.NavState,
                     lam: float) -> None:
@@ -307,7 +305,7 @@ class LandmarkManager:
                     tr.key, tr.anchor = self._new_key(), f
                     for g in [g for g in frames if g < f]:
                         del tr.obs[g]          # the anchor is the first kept observation
-                    v.insert(tr.key, np.array([1.0 / z]))
+                    self._set_depth(tr, 1.0 / z, v)
                     return
         if len(frames) < 2:
             return
@@ -324,7 +322,16 @@ class LandmarkManager:
                 depth = vc.default_depth_m
         tr.key = self._new_key()
         tr.anchor = frames[0]
-        v.insert(tr.key, np.array([1.0 / depth]))
+        self._set_depth(tr, 1.0 / depth, v)
+
+    def _set_depth(self, tr: Track, lam: float, v: gtsam.Values) -> None:
+        """A new key's initial inverse depth (1/m): a variable in ``v``."""
+        v.insert(tr.key, np.array([lam]))
+
+    def _lam(self, tr: Track) -> float | None:
+        """The track's current inverse depth (None without one)."""
+        vals = self.est.values
+        return float(vals.atVector(tr.key)[0]) if tr.key is not None and vals.exists(tr.key) else None
 
     # --------------------------------------------------------------- outliers
     def outlier_removals(self, values: gtsam.Values
