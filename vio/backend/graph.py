@@ -18,7 +18,7 @@ from factors.anchor_noise import AnchorWhitening
 from factors.jit import njit as _njit
 from factors.track_kernel import whitening
 from factors.reanchor import depth_transfer_factor
-from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis
+from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis, transfer_point
 from factors.robust import RobustKernel, reweight_blocks
 from factors.stereo import StereoRig, make_stereo_track, stereo_anchor_jacobian, stereo_factor, stereo_rig
 from vio.backend.config import BackendConfig, CalibConfig, InitConfig
@@ -363,3 +363,4 @@ def compile_kernels() -> None:
     z2, z3 = np.zeros((1, 2)), np.zeros((1, 3))
     predicted_velocities(np.zeros(1, np.int64), z2, z2, np.ones(1, np.bool_), z2, z2, T[None, :3, :3].copy(),
                          z3, z3, z3, 1.0, np.eye(3), np.zeros(3), 0.1, 5.0, z2.copy(), z2.copy())
+    transfer_point(T, T, T, 1.0, np.zeros(2))   # the depth-transfer factor of a re-anchoring
