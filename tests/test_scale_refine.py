@@ -154,7 +154,8 @@ def test_refinement_is_scheduled_and_logged_on_real_v101():
     from vio.run import default_config
     cfg = default_config("features")
     b = cfg.backend
-    ref = dataclasses.replace(b.refine, enabled=True, first_s=3.0, max_scale_sigma=1e-6)
+    ref = dataclasses.replace(b.refine, enabled=True, method="inertial", first_s=3.0, every_s=10.0,
+                              max_scale_sigma=1e-6)
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(b, refine=ref))
     pipe, _ = _pipeline(160, cfg)
     log = pipe.est.refiner.log

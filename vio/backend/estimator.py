@@ -270,7 +270,7 @@ class Estimator:
         if not recovered and self.k == k1:
             self._check_health(t_ns, n_removed, f_imu)
         if not recovered and self.k == k1 and self.divergences == div0:
-            self.refiner.keyframe(self, k0, k1, t_ns, self.pim, bridged)
+            self.refiner.keyframe(self, k0, k1, t_ns, self.pim, bridged, features)
         if not recovered and self.k == k1:
             self._maybe_reanchor_td()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])

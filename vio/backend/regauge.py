@@ -20,33 +20,39 @@ are remapped.
 from __future__ import annotations
 
 import logging
+import time
 from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
 
 from vio.backend import graph
+from factors.robust import RobustKernel
+from vio.backend import viba
 from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
+from vio.backend.viba import History
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
 
 log = logging.getLogger(__name__)
-X, V = graph.X, graph.V
+X, V, B = graph.X, graph.V, graph.B
 
 
 class Similarity:
-    """``x -> pivot + s R (x - pivot)`` on camera centres, applied to body states with the
+    """``x -> pivot + s R (x - pivot) + shift`` on camera centres, applied to body states with the
     lever arm ``t_bc`` (m, body frame)."""
 
-    def __init__(self, s: float, R: gtsam.Rot3, pivot: np.ndarray, t_bc: np.ndarray) -> None:
+    def __init__(self, s: float, R: gtsam.Rot3, pivot: np.ndarray, t_bc: np.ndarray,
+                 shift: np.ndarray | None = None) -> None:
         self.s, self.R, self.Rm = float(s), R, R.matrix()
         self.pivot, self.t_bc = np.asarray(pivot, float), np.asarray(t_bc, float)
+        self.shift = np.zeros(3) if shift is None else np.asarray(shift, float)
 
     def pose(self, T: gtsam.Pose3) -> gtsam.Pose3:
         Rb = T.rotation().matrix()
         c = T.translation() + Rb @ self.t_bc
-        c2 = self.pivot + self.s * self.Rm @ (c - self.pivot)
+        c2 = self.pivot + self.s * self.Rm @ (c - self.pivot) + self.shift
         R2 = self.Rm @ Rb
         return gtsam.Pose3(gtsam.Rot3(R2), c2 - R2 @ self.t_bc)
 
@@ -136,13 +142,17 @@ class ScaleRefiner:
         self.t: dict[int, int] = {}
         self.T: dict[int, gtsam.Pose3] = {}
         self.v: dict[int, np.ndarray] = {}
-        self.pims: list[tuple[int, int, object]] = []
+        self.b: dict[int, gtsam.imuBias.ConstantBias] = {}
+        self.obs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.pims: list[tuple[int, int, object]] = []   # (k0, k1, pim; None where bridged)
         self.t0: int | None = None
         self.next_s = self.cfg.first_s
 
-    def keyframe(self, est: "Estimator", k0: int, k1: int, t_ns: int, pim, bridged: bool) -> None:
-        """Record keyframe ``k1`` (the interval from ``k0`` with ``pim``, skipped when
-        ``bridged``), refresh the window's estimates, refine when due."""
+    def keyframe(self, est: "Estimator", k0: int, k1: int, t_ns: int, pim, bridged: bool,
+                 features=None) -> None:
+        """Record keyframe ``k1`` (the interval from ``k0`` with ``pim``; a bridged one is
+        kept as None) and its ``features`` (``FeatureFrame``), refresh the window's
+        estimates, refine when due."""
         if not self.cfg.enabled or est.C_stereo is not None or est.sources:
             return
         if self.t0 is None:
@@ -150,11 +160,14 @@ class ScaleRefiner:
         if k0 in est.kf_t and k0 not in self.t:
             self.t[k0] = est.kf_t[k0]
         self.t[k1] = t_ns
-        if not bridged and k0 in self.t:
-            self.pims.append((k0, k1, pim))
+        if k0 in self.t:
+            self.pims.append((k0, k1, None if bridged else pim))
+        if features is not None:
+            self.obs[k1] = (np.asarray(features.ids, np.int64).copy(), np.asarray(features.uv, float).copy())
         for k in est.kf_t:
             if est.values.exists(X(k)):
                 self.T[k], self.v[k] = est.values.atPose3(X(k)), est.values.atVector(V(k))
+                self.b[k] = est.values.atConstantBias(B(k))
         self._trim(t_ns)
         age = (t_ns - self.t0) * 1e-9
         if age >= self.next_s and age <= self.cfg.until_s:
@@ -164,15 +177,18 @@ class ScaleRefiner:
         keep = t_ns - int(self.cfg.history_s * 1e9)
         for k in [k for k, t in self.t.items() if t < keep]:
             self.t.pop(k)
-            self.T.pop(k, None)
-            self.v.pop(k, None)
+            for d in (self.T, self.v, self.b, self.obs):
+                d.pop(k, None)
         self.pims = [p for p in self.pims if p[0] in self.t]
 
     def _attempt(self, est: "Estimator", age: float) -> None:
+        if self.cfg.method == "viba":
+            self._attempt_viba(est, age)
+            return
         ks = sorted(k for k in self.t if k in self.T)
         row = {k: n for n, k in enumerate(ks)}
         ivs = [interval(row[a], row[b], pim, self.gravity) for a, b, pim in self.pims
-               if a in row and b in row]
+               if pim is not None and a in row and b in row]
         res = solve([self.T[k] for k in ks], np.array([self.v[k] for k in ks]), ivs,
                     est.values.atPose3(graph.EXTRINSIC), self.gravity, self.cfg)
         self.log.append((age, res))
@@ -202,3 +218,84 @@ class ScaleRefiner:
         est.health.reset(est.kf_t[est.k], est.latest()[2])   # its fallback states are in the old world
         for k in ks:
             self.T[k], self.v[k] = sim.pose(self.T[k]), sim.velocity(self.v[k])
+
+    def _history(self, est: "Estimator") -> History | None:
+        """The recorded keyframes as a :class:`viba.History` (the longest stretch of
+        consecutive keyframes with an interval between each, ending at the newest)."""
+        ks = sorted(k for k in self.t if k in self.T and k in self.b)
+        between = {(a, b): pim for a, b, pim in self.pims}
+        run = ks[-1:]
+        for k in reversed(ks[:-1]):
+            if (k, run[0]) not in between:
+                break
+            run.insert(0, k)
+        if len(run) < 2:
+            return None
+        empty = (np.zeros(0, np.int64), np.zeros((0, 2)))
+        return History([self.t[k] for k in run], [self.T[k] for k in run],
+                       np.array([self.v[k] for k in run]), [self.b[k] for k in run],
+                       [between[(a, b)] for a, b in zip(run[:-1], run[1:])],
+                       [self.obs.get(k, empty) for k in run],
+                       np.array([k in est.kf_t for k in run]))
+
+    def _attempt_viba(self, est: "Estimator", age: float) -> None:
+        """Batch VI-BA over the history (:mod:`vio.backend.viba`) and, when its scale is
+        well determined, its similarity applied to the smoother."""
+        h = self._history(est)
+        if h is None:
+            self.next_s = age + self.cfg.retry_s
+            return
+        vc, ic = est.cfg.vision, est.cfg.init
+        kernel = None if vc.kernel == "none" else RobustKernel(vc.kernel, vc.kernel_k)
+        T_b_c = est.values.atPose3(graph.EXTRINSIC)
+        fx = est.cam.intrinsics[0]
+        sig = np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.prior_gyro_bias_sigma)]
+        t0 = time.perf_counter()
+        res = viba.solve(h, T_b_c, vc.pixel_sigma / fx, kernel, vc.outlier_px / fx, sig, self.cfg)
+        dt = time.perf_counter() - t0
+        self.log.append((age, res))
+        if not res.ok:
+            log.info("visual-inertial BA %.1f s after the start refused: %s", age, res.reason)
+            self.next_s = age + self.cfg.retry_s
+            return
+        self.next_s = self.cfg.first_s + self.cfg.every_s * (int((age - self.cfg.first_s) / self.cfg.every_s) + 1)
+        log.info("visual-inertial BA %.1f s after the start over %d keyframes, %d tracks: scale %.4f "
+                 "(sigma %.2f%%), gravity %.2f deg (%.1f s)", age, res.n_keyframes, res.n_tracks, res.scale,
+                 100 * res.scale_sigma, res.gravity_change_deg, dt)
+        if (abs(res.scale - 1.0) < self.cfg.min_scale_change
+                and (res.gravity_change_deg < self.cfg.min_gravity_change_deg or not self.cfg.ba_apply_tilt)):
+            return
+        if self.cfg.ba_apply == "prior":
+            self._velocity_prior(est, res)
+            return
+        R = res.R_corr if self.cfg.ba_apply_tilt else gtsam.Rot3()
+        sim = Similarity(res.scale, R, res.pivot, T_b_c.translation())
+        self._apply(est, sim, list(self.T))
+
+    def _apply(self, est: "Estimator", sim: Similarity, ks: list) -> None:
+        try:
+            apply_similarity(est, sim)
+        except RuntimeError as exc:
+            log.error("scale refinement not applied: the rebuilt smoother failed (%s)",
+                      str(exc).splitlines()[0][:120])
+            return
+        self.applied += 1
+        est.health.reset(est.kf_t[est.k], est.latest()[2])   # its fallback states are in the old world
+        for k in ks:
+            self.T[k], self.v[k] = sim.pose(self.T[k]), sim.velocity(self.v[k])
+
+    def _velocity_prior(self, est: "Estimator", res) -> None:
+        """The batch's scale as a prior on the newest keyframe's velocity: ``s v`` with an
+        isotropic sigma of ``|v|`` times the batch's relative scale sigma (at least
+        ``ba_min_sigma``); the smoother moves its scale with its own factors, without a
+        rebuild."""
+        v = est.values.atVector(V(est.k))
+        sd = max(res.scale_sigma, self.cfg.ba_min_sigma) * max(float(np.linalg.norm(v)), 0.05)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.PriorFactorVector(V(est.k), res.scale * v, gtsam.noiseModel.Isotropic.Sigma(3, sd)))
+        try:
+            est._update(g, gtsam.Values(), {}, [])
+        except RuntimeError as exc:
+            log.error("scale prior not applied: the smoother refused it (%s)", str(exc).splitlines()[0][:120])
+            return
+        self.applied += 1

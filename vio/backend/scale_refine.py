@@ -3,9 +3,11 @@ ORB-SLAM3's inertial-only refinements (``LocalMapping::ScaleRefinement`` /
 ``Optimizer::InertialOptimization`` at 5 s, 15 s, ... after initialization).
 
 A dynamic initialization fixes the metric scale from 1.5 s of IMU; the fixed-lag
-smoother then keeps it through its marginal prior, which was linearized at that scale
-and holds it with too much confidence: on the real MH_05 mono excerpt the estimate stays
-3-5% short for the whole run (Sim3 ATE 0.039 m, SE3 0.130 m). Once more excitation has
+smoother then drifts from it: on the real MH_05 mono excerpt the initialization's window
+is 7% long (its batch's scale sigma 6.2%), the estimate 3% short over the whole run
+(Sim3 ATE 0.039 m, SE3 0.130 m); on generated MH_04 tracks from 40 s the initialization
+has the truth's scale (1.004) and the smoother is 1.5-2% short for 30 s, where a batch
+over the same factors has the right scale (:mod:`vio.backend.viba`, the default method). Once more excitation has
 accumulated, this module re-solves scale and gravity direction over the keyframe history
 with the visual-inertial trajectory fixed up to scale (:func:`solve`), and
 :mod:`vio.backend.regauge` applies the correction to the estimator's state.
@@ -57,6 +59,7 @@ variance factor ``chi2 / dof`` when above 1) must be below ``max_scale_sigma`` a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import gtsam
 import numpy as np
@@ -66,21 +69,41 @@ NAN = float("nan")
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """When and how to refine scale and gravity (module docstring). Attempts at
-    ``first_s`` after the history's start (initialization or restart), then every
-    ``every_s`` until ``until_s`` (ORB-SLAM3: 5 s, 15 s, then every 10 s to 75 s);
-    a refused attempt is retried at the next keyframe after ``retry_s``. ``history_s``:
-    the keyframe history used (s); ``min_intervals``: fewest IMU intervals;
-    ``min_scale_change`` / ``min_gravity_change_deg``: below both the state is left
-    as is. Monocular only (stereo has a metric baseline). Off by default (module
-    docstring: measured worse on generated mid-flight excerpts)."""
+    """When and how to refine the scale (and gravity) after the start (monocular only:
+    stereo has a metric baseline). ``method``: ``"viba"`` (:mod:`vio.backend.viba`, a
+    visual-inertial BA over the keyframe history) or ``"inertial"`` (this module's
+    inertial-only problem, module docstring). Attempts at ``first_s`` after the history's
+    start (initialization or restart), then every ``every_s`` until ``until_s``; a refused
+    attempt is retried at the next keyframe after ``retry_s``. ``history_s``: the keyframe
+    history used (s); ``min_intervals``: fewest IMU intervals (keyframes for viba).
+    Inertial: ``max_scale_sigma``, ``max_gravity_sigma_deg`` (determinacy),
+    ``min_scale_change`` / ``min_gravity_change_deg`` (below both the state is left alone).
+    VIBA: ``ba_iterations`` of Levenberg-Marquardt, tracks seen in ``min_obs`` keyframes
+    (the ``max_tracks`` longest, depths within ``[min_depth_m, max_depth_m]``), refused
+    above ``ba_max_scale_sigma``; ``ba_apply``: ``"prior"`` puts the batch's scale on the
+    newest keyframe's velocity (``s v``, relative sigma the batch's, at least
+    ``ba_min_sigma``) and lets the smoother follow, ``"similarity"`` rebuilds the smoother
+    at the scaled state (:func:`vio.backend.regauge.apply_similarity`; with
+    ``ba_apply_tilt`` also the batch's gravity direction).
+
+    Off by default. Measured with ``enabled: true`` (viba, prior, every 2 s from 3 s over
+    15 s of history), SE3 ATE before -> after: real MH_05 mono 15 s 0.130 -> 0.078 m;
+    generated mid-flight excerpts (``benchmarks/bench_midflight.py``) MH_04@40 0.378 ->
+    0.182% of the path, MH_05@40 0.312 -> 0.197%, MH_05@70 0.152 -> 0.200%, MH_03@50 0.128
+    -> 0.152%, V1_02@30 0.086 -> 0.112%, V2_01@20 0.104 -> 0.105%; real V1_01 KLT tracks
+    0.0267 -> 0.0225 m. Each BA costs 1-10 s (2 loaded cores; real-time factor 2.0x ->
+    0.3x on V1_01), and the real MH_05 run is chaotic at this level (a 10-s history gives
+    0.118 m). The similarity rebuild was worse (MH_05@70 0.053 -> 0.138 m, V1_02@30 0.024
+    -> 0.042 m: every rebuild perturbs the smoother) and applying the batch's tilt worse
+    again (MH_03@50 0.044 -> 0.088 m: 0.3-0.8 degrees back and forth every 2 s)."""
 
     enabled: bool = False
-    first_s: float = 5.0
-    every_s: float = 10.0
+    method: Literal["viba", "inertial"] = "viba"
+    first_s: float = 3.0
+    every_s: float = 2.0
     until_s: float = 100.0
     retry_s: float = 1.0
-    history_s: float = 30.0
+    history_s: float = 15.0
     min_intervals: int = 15
     pos_sigma_m: float = 0.003
     accel_bias_sigma: float = 0.2
@@ -91,6 +114,15 @@ class RefineConfig:
     max_gravity_change_deg: float = 5.0
     min_scale_change: float = 0.002
     min_gravity_change_deg: float = 0.05
+    ba_iterations: int = 30
+    ba_max_scale_sigma: float = 0.03
+    ba_apply_tilt: bool = False
+    ba_apply: Literal["prior", "similarity"] = "prior"
+    ba_min_sigma: float = 0.005
+    min_obs: int = 3
+    max_tracks: int = 400
+    min_depth_m: float = 0.2
+    max_depth_m: float = 60.0
 
 
 @dataclass(frozen=True)
