@@ -76,6 +76,11 @@ MODE_DEFAULTS: dict[str, dict] = {
 # for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8 mm, renders 7.2/2.7 -> 7.1/2.7 mm
 _PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005}
 MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
+# hybrid: the KLT landmarks' inverse depths eliminated inside per-anchor factors
+# (vio.backend.bundles): real MH_01 5.9 -> 6.0 mm, renders seed 14/21 7.2/2.7 -> 7.2/2.6 mm,
+# ~1 s less main-process CPU on MH_01 (the photometric factors dominate its cost); mono,
+# stereo and features keep landmark variables (mono MH_05 0.130 -> 0.197 m eliminated)
+MODE_DEFAULTS["hybrid"]["backend"]["vision"]["eliminate_depth"] = True
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
@@ -183,8 +188,10 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
         klt_worker = worker and mode == "hybrid"
         if worker:
             from vio.overlap import overlapped
-            if klt_worker:   # the worker also sends the decoded images back (PNG decoded once)
-                it = overlapped(ImageStage, args + (True,), it)
+            # hybrid: the images stay in the worker (a decoded pair, ~0.7 MB, would fill
+            # the pipe and stall the worker: real MH_01 wall 15.9 -> 20.5 s when sent back)
+            if klt_worker:
+                it = overlapped(ImageStage, args, it)
             else:            # direct: the worker decodes the images, KLT (until init) stays here
                 from vio.tracking import DecodeStage
                 it = overlapped(DecodeStage, (2,), it)

@@ -35,12 +35,8 @@ class ImageStage:
     """Adds ``FeatureFrame`` observations to image packets (mono or stereo)."""
 
     def __init__(self, cam0: CameraCalib, cam1: CameraCalib | None,
-                 cfg: FrontendConfig | None = None, keep_images: bool = False) -> None:
-        """``keep_images``: the returned packet also carries the decoded images (hybrid
-        mode in the worker process: the photometric source then does not decode a
-        keyframe's pair a second time)."""
+                 cfg: FrontendConfig | None = None) -> None:
         self.cam0 = cam0
-        self.keep_images = keep_images
         self.stereo = cam1 is not None
         self.frontend = Frontend(cam0, cam1, cfg)
         self._T_b_c = cam0.T_b_c.matrix()
@@ -57,7 +53,7 @@ class ImageStage:
         if self.stereo:
             fr = dataclasses.replace(fr, right_uv=np.asarray(tf.right_uv, float).copy(),
                                      right_velocity=np.asarray(tf.right_velocity, float).copy())
-        return dataclasses.replace(pkt, features=fr, images=tuple(imgs) if self.keep_images else pkt.images)
+        return dataclasses.replace(pkt, features=fr)
 
 
 class DecodeStage:
