@@ -56,11 +56,16 @@ def _add_eval(sub) -> None:
     p.add_argument("--plot", type=Path, help="save a top-view plot (PNG)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The CLI's parser; ``command`` "run" or "eval": only that subcommand (the other
+    subcommands' modules, e.g. ``vio batch`` with Ray, took 0.5 s to import before every
+    ``vio run``)."""
     parser = argparse.ArgumentParser(prog="vio", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     _add_run(sub)
     _add_eval(sub)
+    if command in ("run", "eval"):
+        return parser
     from vio.sim import cli as sim_cli
     from vio.sim import tracks_cli
     sim_cli.add_parser(sub)
@@ -97,7 +102,8 @@ def _handlers() -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     level = logging.INFO if getattr(args, "verbose", False) else logging.WARNING
     if not logging.getLogger().handlers:   # (else the embedding application configured it)

@@ -81,6 +81,10 @@ MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
 # ~1 s less main-process CPU on MH_01 (the photometric factors dominate its cost); mono,
 # stereo and features keep landmark variables (mono MH_05 0.130 -> 0.197 m eliminated)
 MODE_DEFAULTS["hybrid"]["backend"]["vision"]["eliminate_depth"] = True
+# hybrid: 100 photometric points per host instead of direct's 150 (the KLT landmarks hold
+# the geometry too): real MH_01 6.0 -> 6.1 mm, renders seed 14/21 7.2/2.6 -> 6.8/3.1 mm
+# (stereo 6.6 / 11.7 / 13.3 mm), wall 15.3 -> 13.9 s for 15.9 s of data on MH_01
+MODE_DEFAULTS["hybrid"]["direct"] = {"points": {"max_points": 100}}
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
