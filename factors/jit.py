@@ -12,3 +12,14 @@ try:
 except ImportError:  # pragma: no cover - without numba the kernels run as plain Python
     def njit(fn):  # noqa: D103
         return fn
+
+
+def cache_is_warm(kernel) -> bool:
+    """Whether Numba's disk cache holds a compiled version of ``kernel`` for its current
+    source (False when unknown: no Numba, caching off, or a Numba without these
+    internals). Used to tell the user that a first run compiles."""
+    try:
+        index = kernel._cache._cache_file._load_index()
+    except Exception:  # noqa: BLE001 - private Numba API; any failure means "unknown"
+        return False
+    return bool(index)

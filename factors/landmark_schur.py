@@ -358,7 +358,7 @@ def linearize(bundle: Bundle, bodies: np.ndarray, Tc: np.ndarray, td: float,
                       b.use_td, b.start, b.lb_start, b.lbodies, b.a_uv, b.a_vel, b.a_off, b.target,
                       b.right, b.uv, b.vel, b.off, b.basis, b.C, b.ad_inv, b.sphere, b.sigma, b.kind,
                       b.kk, b.U, b.d, lam, b.active, b.p_lam, b.p_info, b.hll, b.iters, b.lam_min,
-                      b.lam_max, H, g)
+                      b.lam_max, H, g, True)   # schur passed, not defaulted: one Numba signature
     return H, g, float(E)
 
 

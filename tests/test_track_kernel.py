@@ -99,3 +99,14 @@ def test_closed_form_whitening_equals_eigh(m):
         if i == 0:   # W (I + G G^T) W = I
             W = b.matrix()
             assert np.allclose(W @ (np.eye(m) + G @ G.T) @ W, np.eye(m), atol=1e-12)
+
+
+def test_cache_is_warm_after_compiling():
+    """``vio run`` tells the user a first run compiles: the check sees a compiled kernel
+    in Numba's disk cache and never reports a plain function as compiled."""
+    from factors.jit import cache_is_warm
+    from factors.track_kernel import track_eval
+    from vio.backend import graph
+    graph.compile_kernels()
+    assert cache_is_warm(track_eval)
+    assert not cache_is_warm(lambda: 0)

@@ -7,6 +7,7 @@ import dataclasses
 import gc
 import logging
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -317,6 +318,21 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
     return lines
 
 
+def _note_cold_kernels(mode: str) -> None:
+    """One line on stderr when the Numba kernels are not compiled yet (first run after an
+    install or update): that run spends 20-40 s compiling before its first frame
+    (hybrid on 2 cores: 49 s instead of 15 s for real MH_01); later runs load them."""
+    from factors.jit import cache_is_warm
+    from factors.track_kernel import track_eval
+    kernels = [track_eval]
+    if mode in ("direct", "hybrid"):
+        from factors.photometric_kernel import host_system
+        kernels.append(host_system)
+    if not all(cache_is_warm(k) for k in kernels):
+        print("vio run: compiling the numerical kernels (first run after an install or update, "
+              "20-40 s; cached for later runs)", file=sys.stderr)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Entry point of ``vio run``."""
     if args.demo:
@@ -330,6 +346,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                             getattr(args, "imu_calib", None), getattr(args, "groundtruth", None))
     mode = resolve_mode(data, args.mode)
     cfg = load_config(args.config, args.td if args.td is not None else data.td_s, mode)
+    _note_cold_kernels(mode)
     if getattr(args, "live", False):
         cfg = dataclasses.replace(cfg, live=True)
     sinks = []
