@@ -88,25 +88,6 @@ def test_worker_process_front_end_is_identical(sim_stereo):
         assert a.images == ()   # the images stay in the worker
 
 
-def test_decode_stage_in_worker_gives_the_images(sim_stereo):
-    """Direct mode's worker stage decodes both cameras' images, nothing else."""
-    from vio.io.euroc import read_image
-    from vio.overlap import overlapped
-    from vio.run import _image_files
-    from vio.sync import packets
-    from vio.tracking import DecodeStage
-    d = sim_stereo
-    stamps = d.cam0.t_ns[:4]
-    files = _image_files(d, True, len(stamps))
-    got = list(overlapped(DecodeStage, (2,), packets(d.imu, stamps, 0.0, image_files=files), depth=2))
-    assert len(got) == 4
-    for p in got:
-        assert p.features is None and len(p.images) == 2
-        for img, f in zip(p.images, p.image_files):
-            np.testing.assert_array_equal(img, read_image(f))
-    assert DecodeStage()(got[0]) is got[0]   # already decoded: passed through
-
-
 def test_worker_process_reports_bad_image(sim_stereo, tmp_path):
     """A missing image inside the worker surfaces as the same one-line DataError."""
     from vio.errors import DataError

@@ -191,15 +191,11 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
         # hybrid tracks KLT on every frame: in the worker process, like stereo mode (direct
         # needs KLT only until it is initialized, so it stays in this process)
         klt_worker = worker and mode == "hybrid"
-        if worker:
+        if klt_worker:   # the images stay in the worker (a decoded pair, ~0.7 MB, would fill
+            # the pipe and stall it: real MH_01 hybrid wall 15.9 -> 20.5 s when sent back;
+            # decoding direct mode's images there cost 8.8 -> 10.6 s and +150 MB)
             from vio.overlap import overlapped
-            # hybrid: the images stay in the worker (a decoded pair, ~0.7 MB, would fill
-            # the pipe and stall the worker: real MH_01 wall 15.9 -> 20.5 s when sent back)
-            if klt_worker:
-                it = overlapped(ImageStage, args, it)
-            else:            # direct: the worker decodes the images, KLT (until init) stays here
-                from vio.tracking import DecodeStage
-                it = overlapped(DecodeStage, (2,), it)
+            it = overlapped(ImageStage, args, it)
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid", klt=not klt_worker)
     if not worker:
         return it, ImageStage(*args)

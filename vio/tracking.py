@@ -55,16 +55,3 @@ class ImageStage:
                                      right_velocity=np.asarray(tf.right_velocity, float).copy())
         return dataclasses.replace(pkt, features=fr)
 
-
-class DecodeStage:
-    """Decodes a packet's first ``n_cams`` image files into ``pkt.images`` (direct mode's
-    front-end worker: PNG decoding off the backend's process; the photometric source and,
-    until initialization, the KLT stage use the decoded images)."""
-
-    def __init__(self, n_cams: int = 2) -> None:
-        self.n_cams = n_cams
-
-    def __call__(self, pkt: FramePacket) -> FramePacket:
-        if pkt.images:
-            return pkt
-        return dataclasses.replace(pkt, images=tuple(read_image(p) for p in pkt.image_files[:self.n_cams]))

@@ -88,10 +88,9 @@ class DirectStage:
         est = self.pipe.est
         if self.hybrid or not est.initialized:
             return pkt if self.klt is None else self.klt(pkt)
-        # direct after initialization: no image is read here; the source uses a
-        # keyframe's pair when it observes it (decoded by the front-end worker process,
-        # else read then: two PNG decodes per frame were ~20% of direct mode's time on
-        # real MH_01, where 3 frames in 10 are keyframes)
+        # direct after initialization: no image is read here; the source reads a
+        # keyframe's pair when it observes it (two PNG decodes per frame were ~20% of
+        # direct mode's time on real MH_01, where 3 frames in 10 are keyframes)
         return dataclasses.replace(pkt, features=self._flow_features(pkt))
 
     def _predict(self, pkt: FramePacket) -> gtsam.Pose3:
