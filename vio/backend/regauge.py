@@ -208,16 +208,7 @@ class ScaleRefiner:
         T0 = self.T[ks[0]]
         t_bc = est.values.atPose3(graph.EXTRINSIC).translation()
         sim = Similarity(res.scale, res.R_corr, T0.translation() + T0.rotation().matrix() @ t_bc, t_bc)
-        try:
-            apply_similarity(est, sim)
-        except RuntimeError as exc:
-            log.error("scale refinement not applied: the rebuilt smoother failed (%s)",
-                      str(exc).splitlines()[0][:120])
-            return
-        self.applied += 1
-        est.health.reset(est.kf_t[est.k], est.latest()[2])   # its fallback states are in the old world
-        for k in ks:
-            self.T[k], self.v[k] = sim.pose(self.T[k]), sim.velocity(self.v[k])
+        self._apply(est, sim, ks)
 
     def _history(self, est: "Estimator") -> History | None:
         """The recorded keyframes as a :class:`viba.History` (the longest stretch of
