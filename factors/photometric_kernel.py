@@ -105,11 +105,12 @@ def _huber(e2, k):
 
 
 @_njit
-def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k, smp, dq):
+def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k):
     """One term of point p at rho, residual I(warp) - b - s I_host (s: gain e^(a_j - a_h),
-    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid). ``smp``, ``dq``
-    (3,): scratch (allocated once per kernel call, not per term)."""
+    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid)."""
     P = bearing.shape[1]
+    smp = np.empty(3)
+    dq = np.empty(3)
     Hrr = 0.0
     gr = 0.0
     cost = 0.0
@@ -135,24 +136,22 @@ def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k,
 
 
 @_njit
-def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k, smp, dq):
+def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k):
     """Static stereo of point p at rho (right affine ``ab_r`` relative to the left)."""
     s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w, huber_k,
-                      smp, dq)
+    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w, huber_k)
 
 
 @_njit
-def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k, smp, dq):
+def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k):
     """Temporal term of point p in target m at rho: I_j - b_j - s (I_h - b_h)."""
     s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0, huber_k,
-                      smp, dq)
+    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0, huber_k)
 
 
 @_njit
 def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
-               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max, smp, dq):
+               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max):
     """A few damped Gauss-Newton steps on the inverse depth of point p (poses held)."""
     M = R_ji.shape[0]
     for _ in range(iters):
@@ -160,13 +159,13 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
         gr = 0.0
         if use_stereo:
             a, b, _c, _s, _n = _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                             t_rl, ab_r, st_w, huber_k, smp, dq)
+                                             t_rl, ab_r, st_w, huber_k)
             Hrr += a
             gr += b
         for m in range(M):
             if tmask[p, m]:
                 a, b, _c, _s, _n = _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, imgs[m], K,
-                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k, smp, dq)
+                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
                 Hrr += a
                 gr += b
         if Hrr <= 1e-12:
@@ -190,16 +189,15 @@ def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     N, P = Ii.shape
     rp = rho.copy()
     ok_p = alive.copy()
-    smp, dq = np.empty(3), np.empty(3)
     for p in range(N):
         if not alive[p]:
             continue
         rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
                            w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters,
-                           rho_min, rho_max, smp, dq)
+                           rho_min, rho_max)
         if use_stereo:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k, smp, dq)
+                                            t_rl, ab_r, st_w, huber_k)
             if nv < P // 2 or ss > outlier_rms * outlier_rms * nv:
                 ok_p[p] = False
         if rp[p] <= rho_min or rp[p] >= rho_max:
@@ -299,7 +297,6 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     H = np.zeros((n, n))
     g = np.zeros(n)
     hx = np.zeros(n)
-    smp, dq = np.empty(3), np.empty(3)
     cost = 0.0
     red = 0.0
     used = 0
@@ -330,7 +327,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         cp = 0.0
         if use_stereo:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k, smp, dq)
+                                            t_rl, ab_r, st_w, huber_k)
             Hrr += a
             gr += b
             cp += c
