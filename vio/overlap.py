@@ -26,13 +26,13 @@ import struct
 import subprocess
 import sys
 import traceback
+from collections import deque
+from typing import IO, Any, Callable, Iterable, Iterator
 
 try:
     import fcntl
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
-from collections import deque
-from typing import IO, Any, Callable, Iterable, Iterator
 
 log = logging.getLogger(__name__)
 
@@ -78,11 +78,10 @@ def _widen(pipe: IO[bytes], size: int = 1 << 20) -> None:
     """Enlarge a pipe's kernel buffer (Linux; 64 KB by default) so the worker can run
     ``depth`` results ahead while the backend is busy in a keyframe update, instead of
     blocking on its write after ~4 of them; silently left as is where not possible."""
-    setsz = getattr(fcntl, "F_SETPIPE_SZ", 1031) if fcntl is not None else None
-    if setsz is None or not sys.platform.startswith("linux"):
+    if fcntl is None or not sys.platform.startswith("linux"):
         return
     try:
-        fcntl.fcntl(pipe.fileno(), setsz, size)
+        fcntl.fcntl(pipe.fileno(), getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
     except OSError:
         pass
 

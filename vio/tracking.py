@@ -54,4 +54,3 @@ class ImageStage:
             fr = dataclasses.replace(fr, right_uv=np.asarray(tf.right_uv, float).copy(),
                                      right_velocity=np.asarray(tf.right_velocity, float).copy())
         return dataclasses.replace(pkt, features=fr)
-
