@@ -412,5 +412,8 @@ def bundle_factor(keys: list[int], bundle: Bundle, health: FactorHealth | None =
     kinds = bundle_kinds(bundle)
     if len(keys) != len(kinds):
         raise ValueError(f"bundle_factor: {len(keys)} keys for {len(kinds)} kinds")
+    b = bundle   # refined inside at each linearization, rescaled and masked from outside
     return custom_factor(gtsam.noiseModel.Unit.Create(bundle.dim + 1), keys, kinds,
-                         bundle_residual_fn(bundle), health)
+                         bundle_residual_fn(bundle), health, cache=True,
+                         state=lambda: (b.lam.tobytes(), b.active.tobytes(), b.p_lam.tobytes(),
+                                        b.p_info.tobytes()))

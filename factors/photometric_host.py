@@ -214,4 +214,6 @@ def host_factor(keys: Sequence[int], pts: HostPoints, targets: Sequence[np.ndarr
         raise ValueError(f"host_factor: {len(keys)} keys for {M} targets")
     n = 8 * (M + 1)
     return custom_factor(gtsam.noiseModel.Unit.Create(n + 1), keys, host_kinds(M),
-                         host_residual_fn(pts, targets, K, T_b_c, params, stereo), health)
+                         host_residual_fn(pts, targets, K, T_b_c, params, stereo), health,
+                         cache=True, state=lambda: (pts.rho.tobytes(), pts.alive.tobytes(),
+                                                    pts.tmask.tobytes()))

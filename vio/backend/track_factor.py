@@ -79,7 +79,7 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
                                         sigma, robust, W)
         return r, J
 
-    return custom_factor(_noise(2 * len(uv), float(sigma)), fkeys, kinds, fn)
+    return custom_factor(_noise(2 * len(uv), float(sigma)), fkeys, kinds, fn, cache=True)  # fn is pure
 
 
 def _layout(obs: list, v0: np.ndarray, off: np.ndarray, rig: StereoRig | None,
