@@ -73,8 +73,9 @@ def depth_transfer_factor(keys: Sequence[int], uv_a: np.ndarray, lam_ref: float,
         raise ValueError(f"sigma and lam_ref must be > 0, got {sigma}, {lam_ref}")
     kinds = [1, 1, "pose3", "pose3", "pose3"] + [1] * (len(keys) - 5)
     uv = np.asarray(uv_a, float).reshape(2)
+    vel_a = None if vel_a is None else np.array(vel_a, float)   # owned: fn is pure, cached
 
     def fn(args: list) -> tuple[np.ndarray, list[np.ndarray]]:
         return depth_transfer_residual(args, uv, lam_ref, vel_a, offset_a)
 
-    return custom_factor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), keys, kinds, fn, health)
+    return custom_factor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), keys, kinds, fn, health, cache=True)
