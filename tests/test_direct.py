@@ -292,6 +292,18 @@ def test_trackframe_flags_lost_frame(tracking_scene):
     assert not out.ok
 
 
+def test_trackframe_diverged_affine_start_is_a_failure_not_an_exception(tracking_scene):
+    """A diverged estimate hands TrackFrame an absurd affine gain (log gain 800: exp
+    overflowed, OverflowError, on the real MH_01 set without TrackFrame's pose guess); the
+    gain is bounded as in the factors and the result is a flagged failure."""
+    kf, new, idepth, *_ = tracking_scene
+    sel = select_points(kf, SelectConfig(n_points=200))
+    rho = idepth[sel.uv[:, 1].astype(int), sel.uv[:, 0].astype(int)]
+    ref = make_reference(kf, sel.uv, rho, KS)
+    out = track_frame(ref, new, ab_init=np.array([800.0, 0.0]))
+    assert not out.ok
+
+
 def test_direct_config_strict_yaml():
     cfg = from_dict(DirectConfig, {"track": {"levels": 3, "iters": [5, 5, 5]},
                                    "epipolar": {"zero_mean": False}})

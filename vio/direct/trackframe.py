@@ -30,6 +30,7 @@ import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
 from factors.photometric import HostPatch, Pinhole, make_host_patch
+from factors.photometric_kernel import MAX_LOG_GAIN
 from factors.trackframe_kernel import track_rows
 from vio.direct.config import TrackConfig
 from vio.direct.lm import levenberg_marquardt
@@ -152,7 +153,8 @@ def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg:
     def evaluate(x) -> None:
         T, ab = x
         Ti = T.inverse()       # keyframe camera -> new camera
-        s = math.exp(float(ab[0]) - ab_i[0])
+        # the factors' gain bound: a diverged affine a must not overflow (inf intensities)
+        s = math.exp(min(max(float(ab[0]) - ab_i[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
         track_rows(*args, Ti.rotation().matrix(), Ti.translation(), Kv, stack, s, ab_i[1], float(ab[1]),
                    cfg.grad_c ** 2, 2.0 * cfg.sigma_I ** 2, cfg.oob_residual, r_w, J, r_raw, valid)
 
