@@ -111,6 +111,8 @@ def worker_main() -> None:
     try:
         import cv2
         cv2.setNumThreads(1)         # two cores: leave the other one to the backend
+        from vio.memory import tune_heap
+        tune_heap()                  # per-frame images and pyramids: reuse, not page faults
         factory, args = _recv(inp)
         stage = factory(*args)
     except BaseException as exc:  # noqa: BLE001 - reported to the main process
