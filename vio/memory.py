@@ -27,17 +27,22 @@ import ctypes.util
 import functools
 
 
-@functools.lru_cache(maxsize=1)
-def _malloc_trim():
-    name = ctypes.util.find_library("c")
-    if not name:
+@functools.lru_cache(maxsize=None)
+def _libc(name: str, argtypes: tuple, restype):
+    """glibc's function ``name`` with its C signature, or None where there is none."""
+    lib = ctypes.util.find_library("c")
+    if not lib:
         return None
     try:
-        fn = ctypes.CDLL(name).malloc_trim
+        fn = getattr(ctypes.CDLL(lib), name)
     except (OSError, AttributeError):
         return None
-    fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+    fn.argtypes, fn.restype = list(argtypes), restype
     return fn
+
+
+def _malloc_trim():
+    return _libc("malloc_trim", (ctypes.c_size_t,), ctypes.c_int)
 
 
 def trim_heap() -> bool:
@@ -52,17 +57,8 @@ def trim_heap() -> bool:
 M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3   # glibc malloc.h
 
 
-@functools.lru_cache(maxsize=1)
 def _mallopt():
-    name = ctypes.util.find_library("c")
-    if not name:
-        return None
-    try:
-        fn = ctypes.CDLL(name).mallopt
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return fn
+    return _libc("mallopt", (ctypes.c_int, ctypes.c_int), ctypes.c_int)
 
 
 def tune_heap(mmap_threshold: int = 32 << 20, trim_threshold: int = 128 << 20,
