@@ -128,10 +128,9 @@ def test_refuses_a_history_without_acceleration():
     assert "poorly determined" in res.reason
 
 
-def test_pipeline_applies_the_batch_scale_on_real_v101():
-    """Enabled on the real V1_01 tracks: the refiner runs the batch from ``first_s`` on and,
-    with a permissive sigma bound, puts its scale on the newest velocity without a
-    recovery or an implausible state."""
+def _v101_refined(**refine):
+    """The pipeline on the first 180 real V1_01 frames with the refinement enabled (first at
+    3 s, every 2 s, a permissive sigma bound) and ``refine`` overrides; returns its estimator."""
     from tests.conftest import shared
     from vio.io.euroc import load_euroc
     from vio.pipeline import Pipeline
@@ -140,16 +139,33 @@ def test_pipeline_applies_the_batch_scale_on_real_v101():
     data = load_euroc(shared("euroc_V1_01_30s_features"))
     cfg = default_config("features")
     ref = dataclasses.replace(cfg.backend.refine, enabled=True, first_s=3.0, every_s=2.0,
-                              ba_max_scale_sigma=0.5)
+                              ba_max_scale_sigma=0.5, **refine)
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, refine=ref))
     pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
     it = packets(data.imu, data.cam0.t_ns, cfg.td_s, data.features)
     for _ in range(180):
         pipe.process(next(it))
-    est = pipe.est
+    return pipe.est
+
+
+def test_pipeline_applies_the_batch_scale_on_real_v101():
+    """Enabled on the real V1_01 tracks: the refiner runs the batch from ``first_s`` on and
+    puts its scale on the newest velocity without a recovery or an implausible state."""
+    est = _v101_refined()
     log = est.refiner.log
     assert log and log[0][0] >= 3.0
     assert est.refiner.applied >= 1
     assert all(0.8 < r.scale < 1.25 for _, r in log if r.ok)
     assert est.recoveries == 0 and est.divergences == 0
     assert np.linalg.norm(est.latest()[1]) < 2.0      # V1_01 flies below 0.7 m/s
+
+
+def test_significance_gate_applies_only_distinct_scales():
+    """``ba_min_significance``: accepted batches whose scale is within that many sigmas of the
+    smoother's are not applied; a batch beyond it still is."""
+    est = _v101_refined(ba_min_significance=1e6)
+    ok = [r for _, r in est.refiner.log if r.ok]
+    assert ok and est.refiner.applied == 0
+    k = min(abs(np.log(r.scale)) / r.scale_sigma for r in ok)
+    est = _v101_refined(ba_min_significance=0.5 * k)
+    assert est.refiner.applied >= 1

@@ -256,6 +256,10 @@ class ScaleRefiner:
         if (abs(res.scale - 1.0) < self.cfg.min_scale_change
                 and (res.gravity_change_deg < self.cfg.min_gravity_change_deg or not self.cfg.ba_apply_tilt)):
             return
+        if abs(np.log(res.scale)) < self.cfg.ba_min_significance * res.scale_sigma:
+            log.info("visual-inertial BA scale within %.1f sigma of the smoother's: not applied",
+                     self.cfg.ba_min_significance)
+            return
         if self.cfg.ba_apply == "prior":
             self._velocity_prior(est, res)
             return

@@ -84,7 +84,9 @@ class RefineConfig:
     newest keyframe's velocity (``s v``, relative sigma the batch's, at least
     ``ba_min_sigma``) and lets the smoother follow, ``"similarity"`` rebuilds the smoother
     at the scaled state (:func:`vio.backend.regauge.apply_similarity`; with
-    ``ba_apply_tilt`` also the batch's gravity direction).
+    ``ba_apply_tilt`` also the batch's gravity direction); ``ba_min_significance``: a batch
+    whose scale is within that many of its own sigmas of the smoother's (``|ln s| < k
+    sigma``) is not applied (0: every accepted batch is).
 
     Off by default. Measured with ``enabled: true`` (viba, prior, every 2 s from 3 s over
     15 s of history), SE3 ATE before -> after: real MH_05 mono 15 s 0.130 -> 0.078 m;
@@ -95,7 +97,22 @@ class RefineConfig:
     0.3x on V1_01), and the real MH_05 run is chaotic at this level (a 10-s history gives
     0.118 m). The similarity rebuild was worse (MH_05@70 0.053 -> 0.138 m, V1_02@30 0.024
     -> 0.042 m: every rebuild perturbs the smoother) and applying the batch's tilt worse
-    again (MH_03@50 0.044 -> 0.088 m: 0.3-0.8 degrees back and forth every 2 s)."""
+    again (MH_03@50 0.044 -> 0.088 m: 0.3-0.8 degrees back and forth every 2 s).
+
+    What the prior gains is mostly not the batch's scale (issue 16, measured at b32d31c).
+    Observed without being applied (``ba_min_significance: 1000000.0``), the batches on
+    generated MH_04@40 report 1.000-1.011 up to 11 s and 1.009-1.018 from 13 s on (sigma
+    0.8-2.0%) while the smoother is 1.8% short; on real MH_05 mono 0.976-1.023 (sigma
+    1.8-2.7%) while it is 3.1% short: within 2.1 sigma every time, within 1.3 sigma on real
+    MH_05. A prior at the smoother's own velocity (``s = 1``, sigma 1% of ``|v|``, every
+    2 s, no batch) gives most of the gain: MH_04@40 0.378 -> 0.200% of the path, real MH_05
+    mono 0.130 -> 0.060 m (Sim3 scale 1.031 -> 0.987), but MH_05@40 0.312 -> 0.300%, V2_02@25
+    0.063 -> 0.079%, MH_03@50 0.128 -> 0.139%: it damps the smoother's drift by counting
+    its own estimate again, so it is not offered. With ``ba_min_significance`` 1.5:
+    MH_05@40 0.312 -> 0.186% (only the batch at 3.1 s applied: 1.036, sigma 2.0%), MH_03@50
+    0.128% (none applied; ungated 0.152%), MH_04@40 0.378 -> 0.390% (three applied, from
+    19 s), real MH_05 none applied (0.130 m).
+    The BAs still cost 0.3-3 s each on the main thread (frame max 3.2-4.7 s)."""
 
     enabled: bool = False
     method: Literal["viba", "inertial"] = "viba"
@@ -119,6 +136,7 @@ class RefineConfig:
     ba_apply_tilt: bool = False
     ba_apply: Literal["prior", "similarity"] = "prior"
     ba_min_sigma: float = 0.005
+    ba_min_significance: float = 0.0
     min_obs: int = 3
     max_tracks: int = 400
     min_depth_m: float = 0.2
