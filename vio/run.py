@@ -86,6 +86,13 @@ MODE_DEFAULTS["hybrid"]["backend"]["vision"]["eliminate_depth"] = True
 # the geometry too): real MH_01 6.0 -> 6.1 mm, renders seed 14/21 7.2/2.6 -> 6.8/3.1 mm
 # (stereo 6.6 / 11.7 / 13.3 mm), wall 15.3 -> 13.9 s for 15.9 s of data on MH_01
 MODE_DEFAULTS["hybrid"]["direct"] = {"points": {"max_points": 100}}
+# hybrid: 40 KLT landmarks in the window instead of 80 (the photometric points carry most
+# of the geometry; on 2 cores hybrid is CPU-bound, 24-25 s of CPU for 20 s of data):
+# `vio run` wall (start-up included) / ATE, 80 -> 40: real MH_01 13.2 -> 11.7 s, 5.7 -> 6.0 mm;
+# MH_01 from frame 100 9.7 -> 9.1 s, 6.2 -> 6.5 mm; renders seed 14 14.0 -> 13.0 s, 6.8 ->
+# 6.8 mm; seed 21 13.3 -> 12.6 s, 3.1 -> 3.2 mm; seed 5 (unseen) 13.8 -> 12.7 s, 4.0 -> 4.6 mm
+# (stereo 6.6 / 6.7 / 11.7 / 13.3 / 18.8 mm); 30 gave no further gain (the KLT worker's floor)
+MODE_DEFAULTS["hybrid"]["backend"]["vision"]["max_landmarks"] = 40
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
