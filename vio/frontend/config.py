@@ -21,6 +21,11 @@ class FrontendConfig:
     quality_level: float = 0.01
     block_size: int = 3
     border_px: int = 2              # tracks closer than this to the edge are dropped
+    # detect only when at least min(this, half the target count) tracks are missing (as
+    # OpenVINS' TrackKLT, which uses 20); between detections the surviving tracks age.
+    # 1 / 10 / 20 on the rolling-shutter render (seed 12): td 10.11 / 9.82 / 9.46 ms for 10
+    # ms; real MH_01 stereo 6.6 / 6.3 / 6.7 mm at 17.4 / 16.6 / 17.1 s of CPU
+    detect_min_missing: int = 10
     # pyramidal Lucas-Kanade
     lk_window: int = 21
     lk_levels: int = 3              # extra pyramid levels above full resolution
@@ -51,7 +56,7 @@ class FrontendConfig:
     worker_process: bool = True
 
     def __post_init__(self) -> None:
-        positive = ("max_features", "min_dist_px", "lk_window", "lk_max_iter", "block_size",
+        positive = ("max_features", "detect_min_missing", "min_dist_px", "lk_window", "lk_max_iter", "block_size",
                     "fb_threshold_px", "ransac_threshold_px", "clahe_clip", "clahe_tiles",
                     "stereo_init_depth_m", "stereo_fb_threshold_px", "stereo_epipolar_px",
                     "min_depth_m", "max_depth_m", "quality_level", "lk_eps")

@@ -172,7 +172,11 @@ class KltTracker:
         keep, mask = spatial_mask((self.cam.height, self.cam.width), px, tlen,
                                   self.cfg.min_dist_px, self.cfg.border_px)
         ids, px, uv, vel, tlen = ids[keep], px[keep], uv[keep], vel[keep], tlen[keep]
-        new_px = detect_corners(img, mask, self.cfg.max_features - len(ids), self.cfg)
+        missing = self.cfg.max_features - len(ids)
+        # OpenVINS (TrackKLT): detect only when enough tracks are missing; always at the start
+        new_px = (detect_corners(img, mask, missing, self.cfg)
+                  if missing >= min(self.cfg.detect_min_missing, max(1, self.cfg.max_features // 2))
+                  else np.zeros((0, 2)))
         n_new = len(new_px)
         new_ids = np.arange(self._next_id, self._next_id + n_new, dtype=np.int64)
         self._next_id += n_new
