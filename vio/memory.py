@@ -15,8 +15,8 @@ it a free at the top of the heap returns pages (trim threshold 128 KB) that the 
 allocation faults in again. ``tune_heap`` raises the mmap threshold to 32 MB, the trim
 threshold to 128 MB and the top pad to 16 MB (``mallopt``), so those blocks are reused.
 Measured on the seed-14 render (20 s, 401 stereo frames): hybrid 1.01 M -> 0.17 M minor
-page faults, system CPU 1.77 -> 0.69 s, trajectory and peak RSS unchanged (736 vs 737 MB);
-direct 0.70 -> 0.39 s system CPU. ``trim_heap`` still returns the retained memory on
+page faults, system CPU 1.77 -> 0.7-1.2 s (`vio run`, repeated runs), trajectory and peak
+RSS unchanged (736 vs 737 MB); direct 0.70 -> 0.4-0.46 s system CPU. ``trim_heap`` still returns the retained memory on
 long runs.
 """
 

@@ -232,14 +232,14 @@ class PhotometricSource:
             res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), T_init, ab_p,
                               self.cfg.track, self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9))
         except (ArithmeticError, np.linalg.LinAlgError) as exc:   # a numerical failure is a failure
-            kd.release_pyramid()
-            ms = (time.perf_counter() - t0) * 1e3
-            self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
+            res = None
             log.warning("TrackFrame failed at keyframe %d (%s: %s); IMU prediction kept", k,
                         type(exc).__name__, exc)
-            return ab_p
         ms = (time.perf_counter() - t0) * 1e3
         kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
+        if res is None:
+            self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
+            return ab_p
         # re-orthonormalized: T_tr = T_w_cp (T_w_cp^-1 T_pred T_b_c) ... composes the
         # previous keyframe's rotation three times, so its rounding error tripled at every
         # keyframe (1e-16 -> 0.5% shear by keyframe 28 of real MH_01, then divergence)
