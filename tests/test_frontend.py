@@ -121,6 +121,16 @@ def test_ransac_removes_injected_outliers(model: str) -> None:
     assert np.mean(inl[~is_out]) >= 0.95, f"{model}: kept only {inl[~is_out].sum()} of {n - n_out}"
 
 
+def test_ransac_survives_an_opencv_usac_assertion() -> None:
+    """103 real MH_01 tracks (hybrid mode from frame 100, 120 features) on which OpenCV
+    5's USAC_FAST fundamental matrix asserts (``!model.empty()``): the KLT worker used to
+    die there. Plain RANSAC takes over and keeps the (nearly static) tracks."""
+    d = np.load(Path(__file__).parent / "data" / "usac_assert_tracks.npz")
+    inl = ransac_inliers(d["uv_a"], d["uv_b"], float(d["focal"]), FrontendConfig())
+    assert inl.shape == (103,) and inl.dtype == bool
+    assert inl.mean() >= 0.9
+
+
 # --- synthetic motion of a real image ---------------------------------------------------
 @pytest.fixture(scope="module")
 def static_set():

@@ -20,3 +20,19 @@ def test_replies_arriving_together_are_all_received():
 
     got = list(overlapped(operator.attrgetter, ("index",), source(), depth=5, timeout_s=5.0))
     assert got == [0, 1, 2, 3]
+
+
+
+def test_worker_error_after_it_exits_is_reported_not_a_broken_pipe():
+    """The worker stops at its first error; the parent, still sending packets ahead,
+    used to die on ``BrokenPipeError`` (a traceback, the worker's message lost: a
+    cv2 assertion inside the KLT front end surfaced that way)."""
+    import pytest
+    pkts = (SimpleNamespace(index=i) if i == 1 else SimpleNamespace(index=i, value=i)
+            for i in range(50))
+    got = []
+    with pytest.raises(AttributeError, match="no attribute 'value'"):
+        for x in overlapped(operator.attrgetter, ("value",), pkts, depth=4, timeout_s=10.0):
+            got.append(x)
+            time.sleep(0.5)   # the worker meanwhile answers packet 1 with its error and exits
+    assert got == [0]

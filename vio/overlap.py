@@ -148,16 +148,22 @@ def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
     source = iter(packets)
     try:
         _send(proc.stdin, (factory, args))
-        done = False
+        done = stopped = False
         while True:
             while not done and len(pending) < depth:
                 pkt = next(source, None)
                 if pkt is None:
                     done = True
                     break
-                _send(proc.stdin, pkt)
+                try:
+                    _send(proc.stdin, pkt)
+                except OSError:   # the worker stopped: its error follows its last results
+                    done = stopped = True
+                    break
                 pending.append(pkt.index)
             if not pending:
+                if stopped:
+                    raise WorkerError(f"front-end worker stopped early (exit code {proc.wait(5.0)})")
                 return
             yield _receive(proc, timeout_s)
             pending.popleft()

@@ -70,10 +70,13 @@ def pair_rotation(uv_a: np.ndarray, uv_b: np.ndarray, fx: float, pure_px: float 
     err = np.linalg.norm(np.cross(ra, rb @ R.T), axis=1) * fx
     if np.median(err) <= pure_px:     # no measurable translation: the rotation alone
         return R
-    E, mask = cv2.findEssentialMat(uv_a, uv_b, np.eye(3), cv2.RANSAC, 0.999, 1.0 / fx)
-    if E is None or E.shape != (3, 3) or mask is None or mask.sum() < min_points:
+    try:   # OpenCV 5's robust estimators assert on some near-degenerate sets
+        E, mask = cv2.findEssentialMat(uv_a, uv_b, np.eye(3), cv2.RANSAC, 0.999, 1.0 / fx)
+        if E is None or E.shape != (3, 3) or mask is None or mask.sum() < min_points:
+            return None
+        n, R_ba, _, _ = cv2.recoverPose(E, uv_a, uv_b, np.eye(3), mask=mask)
+    except cv2.error:
         return None
-    n, R_ba, _, _ = cv2.recoverPose(E, uv_a, uv_b, np.eye(3), mask=mask)
     if n < min_points:
         return None
     return R_ba.T   # recoverPose gives x_b = R_ba x_a + t

@@ -99,13 +99,16 @@ def pnp_pose(points: dict[int, np.ndarray], fr: FeatureFrame, guess: gtsam.Pose3
         T = guess.inverse()   # T_cj_c0
         rvec = cv2.Rodrigues(T.rotation().matrix())[0]
         tvec = T.translation().reshape(3, 1).copy()
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, rvec, tvec, guess is not None,
-                                             iterationsCount=100, reprojectionError=thresh,
-                                             confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
-    if not ok or inl is None or len(inl) < min_inliers:
-        return None, 0 if inl is None else len(inl)
-    idx = inl.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], K, None, rvec, tvec)
+    try:   # OpenCV 5's robust estimators assert on some near-degenerate sets
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, rvec, tvec, guess is not None,
+                                                 iterationsCount=100, reprojectionError=thresh,
+                                                 confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok or inl is None or len(inl) < min_inliers:
+            return None, 0 if inl is None else len(inl)
+        idx = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], K, None, rvec, tvec)
+    except cv2.error:
+        return None, 0
     R = cv2.Rodrigues(rvec)[0]
     return gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()).inverse(), len(idx)
 

@@ -10,6 +10,7 @@ to ``max_features``. Ids are int64, unique and stable for the life of a track.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import cv2
@@ -17,6 +18,9 @@ import numpy as np
 
 from vio.frontend.camera import Camera
 from vio.frontend.config import FrontendConfig
+
+log = logging.getLogger(__name__)
+
 
 def check_image(img: np.ndarray, cam: Camera, what: str) -> np.ndarray:
     """Validate a grayscale uint8 (H, W) image of the camera's resolution."""
@@ -77,19 +81,32 @@ def ransac_inliers(uv_a: np.ndarray, uv_b: np.ndarray, focal: float,
     min_pts = 8 if cfg.ransac_model == "fundamental" else 5
     if n < min_pts + 2:
         return np.ones(n, dtype=bool)
-    if cfg.ransac_model == "fundamental":
-        a = (uv_a * focal).astype(np.float64)
-        b = (uv_b * focal).astype(np.float64)
-        _, mask = cv2.findFundamentalMat(a, b, _USAC_F, cfg.ransac_threshold_px,
-                                         cfg.ransac_confidence)
-    else:
-        _, mask = cv2.findEssentialMat(uv_a.astype(np.float64), uv_b.astype(np.float64),
-                                       focal=1.0, pp=(0.0, 0.0), method=_USAC_E,
-                                       prob=cfg.ransac_confidence,
-                                       threshold=cfg.ransac_threshold_px / focal)
+    mask = None
+    for usac in (True, False):
+        try:
+            mask = _epipolar_mask(uv_a, uv_b, focal, cfg, usac)
+            break
+        except cv2.error:   # OpenCV 5's USAC asserts on some near-degenerate sets
+            log.debug("USAC failed on %d tracks; plain RANSAC instead", n)
     if mask is None or mask.size != n:  # degenerate: no model found, keep everything
         return np.ones(n, dtype=bool)
     return mask.reshape(-1).astype(bool)
+
+
+def _epipolar_mask(uv_a: np.ndarray, uv_b: np.ndarray, focal: float, cfg: FrontendConfig,
+                   usac: bool) -> np.ndarray | None:
+    """OpenCV's inlier mask (N, 1) of ``ransac_inliers``' model, USAC or plain RANSAC."""
+    if cfg.ransac_model == "fundamental":
+        a = (uv_a * focal).astype(np.float64)
+        b = (uv_b * focal).astype(np.float64)
+        _, mask = cv2.findFundamentalMat(a, b, _USAC_F if usac else cv2.FM_RANSAC,
+                                         cfg.ransac_threshold_px, cfg.ransac_confidence)
+        return mask
+    _, mask = cv2.findEssentialMat(uv_a.astype(np.float64), uv_b.astype(np.float64),
+                                   focal=1.0, pp=(0.0, 0.0), method=_USAC_E if usac else cv2.RANSAC,
+                                   prob=cfg.ransac_confidence,
+                                   threshold=cfg.ransac_threshold_px / focal)
+    return mask
 
 
 def spatial_mask(shape: tuple[int, int], px: np.ndarray, track_len: np.ndarray,
