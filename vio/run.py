@@ -93,6 +93,13 @@ MODE_DEFAULTS["hybrid"]["direct"] = {"points": {"max_points": 100}}
 # 6.8 mm; seed 21 13.3 -> 12.6 s, 3.1 -> 3.2 mm; seed 5 (unseen) 13.8 -> 12.7 s, 4.0 -> 4.6 mm
 # (stereo 6.6 / 6.7 / 11.7 / 13.3 / 18.8 mm); 30 gave no further gain (the KLT worker's floor)
 MODE_DEFAULTS["hybrid"]["backend"]["vision"]["max_landmarks"] = 40
+# hybrid: the KLT worker tracks 120 features instead of 150 (its LK and stereo matching
+# scale with the count; the backend keeps 40 of them): `vio run` wall / ATE, 150 -> 120:
+# real MH_01 11.2 -> 10.9 s, 6.0 -> 5.8 mm; from frame 100 6.5 -> 6.2 mm; renders seed 14
+# 12.9 -> 12.5 s, 6.8 -> 6.8 mm; seed 21 4.4 -> 3.7 mm; seeds 5 / 8 (unseen) 4.5 / 5.8 ->
+# 3.9 / 3.1 mm. 100 and 75 save 0.3-0.8 s more but give 6.9 / 6.5 mm on real MH_01
+# (stereo 6.3)
+MODE_DEFAULTS["hybrid"]["frontend"] = {"max_features": 120}
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
