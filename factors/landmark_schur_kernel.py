@@ -12,7 +12,6 @@ import numpy as np
 from factors.jit import njit as _njit
 from factors.track_kernel import track_eval, whitening_2
 
-_NO_U, _NO_D = np.zeros((0, 0)), np.zeros(0)   # no whitening: track_eval's empty U, d
 
 
 @_njit
@@ -31,11 +30,14 @@ def _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, 
     lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
     n = s1 - s0
     r = np.empty(2 * n)
-    J = np.zeros((2 * n, 13 + 6 * (lb.shape[0] - 1) + (1 if use_td else 0)))
+    # the argument types of track_eval's Python caller (factors.track_kernel.evaluate):
+    # Fortran-order J, writable empty U and d (not read-only globals), so that one
+    # compiled version serves both (each further signature cost ~2 s of first-run compile)
+    J = np.zeros((13 + 6 * (lb.shape[0] - 1) + (1 if use_td else 0), 2 * n)).T
     G = np.empty((n, 2, 2))
     track_eval(lb, target[s0:s1], right[s0:s1], C, ad_inv, Tc, lam, td, use_td, a_uv[i], a_vel[i],
                a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, sigma, kind, kk,
-               _NO_U, _NO_D, r, J, G)
+               np.zeros((2 * n, 0)), np.zeros(0), r, J, G)
     return r, J, G
 
 
@@ -203,13 +205,20 @@ def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i
 
 @_njit
 def _set_whitening(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
-                   right, uv, vel, off, basis, C, ad_inv, sphere, lam, U, d):
+                   right, uv, vel, off, basis, C, ad_inv, sphere, sigma, kind, kk, lam, U, d):
+    """U, d of every landmark; ``sigma``, ``kind``, ``kk`` (1, 0, 1: unweighted) come from
+    Python so that ``_eval_one`` has bundle_system's argument types (a literal 0 here
+    compiled a second version of it and of track_eval)."""
     for i in range(lam.shape[0]):
         s0, s1 = start[i], start[i + 1]
         _, _, G = _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off,
-                            target, right, uv, vel, off, basis, C, ad_inv, sphere, 1.0, 0, 1.0, lam[i])
+                            target, right, uv, vel, off, basis, C, ad_inv, sphere, sigma, kind, kk,
+                            lam[i])
         Ui = np.zeros((2 * (s1 - s0), 2))
         di = np.zeros(2)
         whitening_2(G.reshape(2 * (s1 - s0), 2), Ui, di)
-        U[2 * s0:2 * s1] = Ui
-        d[i] = di
+        for a in range(Ui.shape[0]):   # element loops: a slice assignment compiles Numba's
+            for q in range(2):         # shape-mismatch message formatting (~2.5 s)
+                U[2 * s0 + a, q] = Ui[a, q]
+        for q in range(2):
+            d[i, q] = di[q]

@@ -145,8 +145,10 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
     tm = pts.tmask if update else pts.tmask.copy()
     return host_system(pts.patch.bearing, pts.patch.intensity, pts.wg, pts.patch.valid, rho, alive,
                        tm, imgs, _kvec(K), R_ji, t_ji, R_jb, T_b_c.rotation().matrix(),
-                       T_b_c.translation(), ab_h, ab_t, w0, st, K1, T_rl.rotation().matrix(),
-                       T_rl.translation(), ab_r, w0 * params.stereo_weight, stereo is not None, hk,
+                       T_b_c.translation(), ab_h, ab_t, w0, st, K1,
+                       # C-order, writable: the layout of R_ji[m], t_ji[m], so that the stereo and
+                       # temporal terms share one compiled _rho_terms (first-run compile)
+                       np.ascontiguousarray(T_rl.rotation().matrix()), np.array(T_rl.translation()), ab_r, w0 * params.stereo_weight, stereo is not None, hk,
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update)
 
 

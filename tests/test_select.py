@@ -56,14 +56,20 @@ def test_select_cells_matches_reference(seed, pot):
     assert (lev > 0).any() and len(idx) > 10            # the coarse levels fill the flat third
 
 
-@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("seed", range(10))
 def test_block_medians_match_numpy(seed):
-    """Exact medians (histogram + sort of the middle bins), ties and clipped blocks included."""
+    """Exact medians (histogram narrowing), ties, clipped blocks, skewed blocks (most
+    values in one bin) and two-valued blocks (middle ranks in the first and last bins)."""
     rng = np.random.default_rng(seed)
     grad = np.abs(rng.normal(0, 10, (int(rng.integers(20, 90)), int(rng.integers(20, 120)))))
     if seed % 2:
         grad = np.round(grad)                    # many ties, flat (all-equal) blocks
         grad[:8, :8] = 3.0
+    if seed >= 6:
+        grad = rng.random(grad.shape) * 3.0      # skewed: one strong edge per few blocks
+        grad[::5, ::7] = 255.0
+    if seed >= 8:
+        grad = (rng.random(grad.shape) > 0.5) * 1.0
     block = int(rng.integers(3, 17))
     med = _block_medians(grad, block)
     for by in range(med.shape[0]):
