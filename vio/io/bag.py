@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from vio.errors import DataError
+from vio.io.png import decode_png_gray8
 from vio.io.types import CameraCalib, CameraStream, ImuCalib, ImuData
 
 log = logging.getLogger(__name__)
@@ -211,7 +212,9 @@ def to_gray(msg, msgtype: str, what: str) -> np.ndarray:
     divided by 256 (as cv_bridge does)."""
     data = np.frombuffer(msg.data, np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data
     if msgtype == COMPRESSED_TYPE:
-        img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+        img = decode_png_gray8(data.tobytes()) if data.size else None   # the fast path, else OpenCV
+        if img is None:
+            img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
         if img is None:
             raise DataError(what, f"CompressedImage ({msg.format!r}) cannot be decoded")
         return img
