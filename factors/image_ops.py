@@ -46,14 +46,12 @@ def _gradient_stack(img):
     gy likewise, zero on the border columns / rows; one pass (np.stack of separate planes
     cost ~2 ms per 752x480 image, 10 per keyframe)."""
     H, W = img.shape
-    out = np.zeros((H, W, 3))
+    out = np.empty((H, W, 3))   # every element written below (zeroing first: +0.2 ms)
     for v in range(H):
         for u in range(W):
             out[v, u, 0] = img[v, u]
-            if 0 < u < W - 1:
-                out[v, u, 1] = 0.5 * (img[v, u + 1] - img[v, u - 1])
-            if 0 < v < H - 1:
-                out[v, u, 2] = 0.5 * (img[v + 1, u] - img[v - 1, u])
+            out[v, u, 1] = 0.5 * (img[v, u + 1] - img[v, u - 1]) if 0 < u < W - 1 else 0.0
+            out[v, u, 2] = 0.5 * (img[v + 1, u] - img[v - 1, u]) if 0 < v < H - 1 else 0.0
     return out
 
 
