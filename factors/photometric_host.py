@@ -148,7 +148,8 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        T_b_c.translation(), ab_h, ab_t, w0, st, K1,
                        # C-order, writable: the layout of R_ji[m], t_ji[m], so that the stereo and
                        # temporal terms share one compiled _rho_terms (first-run compile)
-                       np.ascontiguousarray(T_rl.rotation().matrix()), np.array(T_rl.translation()), ab_r, w0 * params.stereo_weight, stereo is not None, hk,
+                       np.ascontiguousarray(T_rl.rotation().matrix()), np.array(T_rl.translation()),
+                       ab_r, w0 * params.stereo_weight, stereo is not None, hk,
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update)
 
 

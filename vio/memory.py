@@ -16,8 +16,8 @@ allocation faults in again. ``tune_heap`` raises the mmap threshold to 32 MB, th
 threshold to 128 MB and the top pad to 16 MB (``mallopt``), so those blocks are reused.
 Measured on the seed-14 render (20 s, 401 stereo frames): hybrid 1.01 M -> 0.17 M minor
 page faults, system CPU 1.77 -> 0.7-1.2 s (`vio run`, repeated runs), trajectory and peak
-RSS unchanged (736 vs 737 MB); direct 0.70 -> 0.4-0.46 s system CPU. ``trim_heap`` still returns the retained memory on
-long runs.
+RSS unchanged (736 vs 737 MB); direct 0.70 -> 0.4-0.46 s system CPU. ``trim_heap`` still
+returns the retained memory on long runs.
 """
 
 from __future__ import annotations

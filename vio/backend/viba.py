@@ -14,9 +14,9 @@ whitening, tracks never re-anchored). Measured on generated MH_04 tracks from 40
 (real IMU, ``benchmarks/bench_midflight.py``): the initialization's batch window has the
 ground truth's scale (Umeyama 1.004) and the smoother's trajectory is 1.5-2% short for the
 whole 30 s; a batch over the first 10 s of keyframes (the same IMU factors, this
-module's landmark factors, no marginalization) converges to scale 0.998 both from the ground truth and from the
-smoother's own trajectory (same final error), so the batch's MAP has the right scale and
-the smoother does not find it. (The earlier inertial-only refinement of
+module's landmark factors, no marginalization) converges to scale 0.998 both from the
+ground truth and from the smoother's own trajectory (same final error), so the batch's
+MAP has the right scale and the smoother does not find it. (The earlier inertial-only refinement of
 :mod:`vio.backend.scale_refine` fixes the attitudes and the trajectory's shape, which the
 smoother had already made consistent with its scale: it reported ~1.0.)
 

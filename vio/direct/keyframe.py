@@ -148,14 +148,16 @@ def right_affine(left: BilinearImage, right: BilinearImage, uv: np.ndarray, uv_m
             slope = np.cov(x, y, bias=True)[0, 1] / np.var(x)
             if 0.2 < slope < 5.0:
                 return np.array([np.log(slope), y.mean() - slope * x.mean()])
-    sl = max(_std(right.image), 1e-3) / max(_std(left.image), 1e-3)
+    sl = _std_ratio(left, right)
     return np.array([np.log(sl), right.image.mean() - sl * left.image.mean()])
 
 
-def _std(image: np.ndarray) -> float:
-    """Standard deviation of an image's intensities (OpenCV's: 0.2 instead of numpy's 0.6 ms
-    at 752x480)."""
-    return float(cv2.meanStdDev(image)[1][0, 0])
+def _std_ratio(left: BilinearImage, right: BilinearImage) -> float:
+    """Ratio of the right image's intensity standard deviation to the left's (each at least
+    1e-3): the gain guess of the depth search and ``right_affine``'s fallback. OpenCV's
+    standard deviation: 0.2 instead of numpy's 0.6 ms at 752x480."""
+    sd = [max(float(cv2.meanStdDev(im.image)[1][0, 0]), 1e-3) for im in (right, left)]
+    return sd[0] / sd[1]
 
 
 # one worker: the points of a keyframe are built while the main thread runs the
@@ -187,7 +189,7 @@ def _points(pyr: tuple[BilinearImage, ...], right_raw: np.ndarray | str | Path, 
     raw = read_image(right_raw) if isinstance(right_raw, (str, Path)) else right_raw
     R = BilinearImage(rig.undistort_one(raw, 1))
     sel = select_points(L.image, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
-    gain = np.log(max(_std(R.image), 1e-3) / max(_std(L.image), 1e-3))
+    gain = np.log(_std_ratio(L, R))
     ep = epipolar_search(L, R, sel.uv, rig.K0, rig.K1, rig.T_c1_c0, cfg.epipolar, (gain, 0.0))
     pc = cfg.points
     ok = ep.ok & (ep.idepth >= 1.0 / pc.max_depth_m) & (ep.idepth <= 1.0 / pc.min_depth_m)

@@ -65,11 +65,11 @@ def _block_medians(grad, block):
     for by in range(nby):
         for bx in range(nbx):
             y0, x0 = by * block, bx * block
-            bw = min(w, x0 + block) - x0
-            n = (min(h, y0 + block) - y0) * bw    # (a counter from 0 typed _ranks' n as a
-            for y in range(y0, y0 + n // bw):     # literal too: two compiled versions)
-                for x in range(x0, x0 + bw):
-                    buf[(y - y0) * bw + x - x0] = grad[y, x]
+            bh, bw = min(h, y0 + block) - y0, min(w, x0 + block) - x0
+            n = bh * bw       # (a counter from 0 typed _ranks' n as a literal too: two versions)
+            for y in range(bh):
+                for x in range(bw):
+                    buf[y * bw + x] = grad[y0 + y, x0 + x]
             lo, hi = _ranks(buf, n, (n - 1) // 2, n // 2, counts, tmp)
             med[by, bx] = 0.5 * (lo + hi)
     return med

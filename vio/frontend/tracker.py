@@ -87,7 +87,7 @@ def ransac_inliers(uv_a: np.ndarray, uv_b: np.ndarray, focal: float,
             mask = _epipolar_mask(uv_a, uv_b, focal, cfg, usac)
             break
         except cv2.error:   # OpenCV 5's USAC asserts on some near-degenerate sets
-            log.debug("USAC failed on %d tracks; plain RANSAC instead", n)
+            log.debug("%s failed on %d tracks", "USAC" if usac else "plain RANSAC", n)
     if mask is None or mask.size != n:  # degenerate: no model found, keep everything
         return np.ones(n, dtype=bool)
     return mask.reshape(-1).astype(bool)

@@ -212,9 +212,11 @@ def to_gray(msg, msgtype: str, what: str) -> np.ndarray:
     divided by 256 (as cv_bridge does)."""
     data = np.frombuffer(msg.data, np.uint8) if not isinstance(msg.data, np.ndarray) else msg.data
     if msgtype == COMPRESSED_TYPE:
-        img = decode_png_gray8(data.tobytes()) if data.size else None   # the fast path, else OpenCV
-        if img is None:
-            img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+        img = None
+        if data.size:   # vio.io.png's fast path, else OpenCV
+            img = decode_png_gray8(data.tobytes())
+            if img is None:
+                img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise DataError(what, f"CompressedImage ({msg.format!r}) cannot be decoded")
         return img
