@@ -6,16 +6,13 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
 
 from vio.errors import DataError
 from vio.io.csvio import NumericTable, check_increasing, read_numeric, read_text_lines
-
-if TYPE_CHECKING:
-    from vio.sim.tracks import TrackGenResult
+from vio.sim.tracks_config import TrackGenResult
 
 GT_DIR = "state_groundtruth_estimate0"
 
