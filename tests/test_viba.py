@@ -169,3 +169,46 @@ def test_significance_gate_applies_only_distinct_scales():
     k = min(abs(np.log(r.scale)) / r.scale_sigma for r in ok)
     est = _v101_refined(ba_min_significance=0.5 * k)
     assert est.refiner.applied >= 1
+
+
+def _bad_history():
+    poses, vel, pims, bias = _swaying_history()
+    sim = Similarity(0.95, gtsam.Rot3.Rx(np.radians(1.0)), poses[0].compose(T_B_C).translation(),
+                     T_B_C.translation())
+    return _history([sim.pose(T) for T in poses], [sim.velocity(v) for v in vel], pims, bias,
+                    np.random.default_rng(3))
+
+
+def _args(h: viba.History) -> tuple:
+    return (h, T_B_C, 1.0 / FX, RobustKernel("huber", 3.0), 6.0 / FX, np.r_[np.full(3, 0.2), np.full(3, 0.01)],
+            RefineConfig(enabled=True))
+
+
+def test_worker_gives_the_in_process_result_when_due():
+    """The BA in the worker process: nothing before its due time, then exactly the result of
+    ``viba.solve`` in this process (pickled history and preintegrations)."""
+    from vio.backend.viba_worker import BatchWorker
+    h = _bad_history()
+    w = BatchWorker()
+    try:
+        assert w.submit(1_000, _args(h), "a")
+        assert w.due(999) == [] and w.pending()
+        [(tag, (res, dt))] = w.due(1_000)
+    finally:
+        w.close()
+    ref = viba.solve(*_args(h))
+    assert tag == "a" and res.ok and dt > 0 and not w.pending()
+    assert res.scale == ref.scale and res.scale_sigma == ref.scale_sigma
+
+
+def test_dead_worker_is_a_refusal_not_an_error(caplog):
+    from vio.backend.viba_worker import BatchWorker
+    w = BatchWorker()
+    w.start()
+    w._proc.kill()
+    w._proc.wait()
+    w.submit(0, _args(_bad_history()), "a")
+    out = w.due(0)
+    assert w.failed and all(not r.ok for _, (r, _) in out)
+    assert "worker stopped" in caplog.text
+    assert not w.submit(0, (), "b")        # the caller falls back to solving in process

@@ -31,6 +31,7 @@ from factors.robust import RobustKernel
 from vio.backend import viba
 from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
 from vio.backend.viba import History
+from vio.backend.viba_worker import BatchWorker
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -134,6 +135,8 @@ class ScaleRefiner:
         self.cfg = cfg
         self.gravity = np.asarray(gravity, float)
         self.applied = 0                  # corrections applied
+        self.worker: BatchWorker | None = None   # the BA's process (RefineConfig.ba_worker)
+        self.generation = -1
         self.log: list[tuple[float, Refinement]] = []   # (s after start, outcome) per attempt
         self.reset()
 
@@ -147,6 +150,7 @@ class ScaleRefiner:
         self.pims: list[tuple[int, int, object]] = []   # (k0, k1, pim; None where bridged)
         self.t0: int | None = None
         self.next_s = self.cfg.first_s
+        self.generation += 1              # jobs still in flight belong to an older one
 
     def keyframe(self, est: "Estimator", k0: int, k1: int, t_ns: int, pim, bridged: bool,
                  features=None) -> None:
@@ -157,6 +161,9 @@ class ScaleRefiner:
             return
         if self.t0 is None:
             self.t0 = est.kf_t.get(k0, t_ns)
+        if self.cfg.ba_worker and self.cfg.method == "viba" and self.worker is None:
+            self.worker = BatchWorker()
+            self.worker.start()
         if k0 in est.kf_t and k0 not in self.t:
             self.t[k0] = est.kf_t[k0]
         self.t[k1] = t_ns
@@ -169,6 +176,7 @@ class ScaleRefiner:
                 self.T[k], self.v[k] = est.values.atPose3(X(k)), est.values.atVector(V(k))
                 self.b[k] = est.values.atConstantBias(B(k))
         self._trim(t_ns)
+        self._collect(est, t_ns)
         age = (t_ns - self.t0) * 1e-9
         if age >= self.next_s and age <= self.cfg.until_s:
             self._attempt(est, age)
@@ -230,20 +238,41 @@ class ScaleRefiner:
                        np.array([k in est.kf_t for k in run]))
 
     def _attempt_viba(self, est: "Estimator", age: float) -> None:
-        """Batch VI-BA over the history (:mod:`vio.backend.viba`) and, when its scale is
-        well determined, its similarity applied to the smoother."""
+        """Batch VI-BA over the history (:mod:`vio.backend.viba`), in the worker process
+        (``ba_worker``: finished at the first keyframe ``ba_delay_s`` later) or here."""
         h = self._history(est)
         if h is None:
             self.next_s = age + self.cfg.retry_s
             return
         vc, ic = est.cfg.vision, est.cfg.init
         kernel = None if vc.kernel == "none" else RobustKernel(vc.kernel, vc.kernel_k)
-        T_b_c = est.values.atPose3(graph.EXTRINSIC)
         fx = est.cam.intrinsics[0]
         sig = np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.prior_gyro_bias_sigma)]
+        args = (h, est.values.atPose3(graph.EXTRINSIC), vc.pixel_sigma / fx, kernel,
+                vc.outlier_px / fx, sig, self.cfg)
+        t_ns = est.kf_t[est.k]
+        if self.worker is not None:
+            if self.worker.submit(t_ns + int(self.cfg.ba_delay_s * 1e9), args, (self.generation, age)):
+                self.next_s = float("inf")     # one job at a time; its result sets the next
+                return
         t0 = time.perf_counter()
-        res = viba.solve(h, T_b_c, vc.pixel_sigma / fx, kernel, vc.outlier_px / fx, sig, self.cfg)
-        dt = time.perf_counter() - t0
+        res = viba.solve(*args)
+        self._finish_viba(est, age, res, time.perf_counter() - t0)
+
+    def _collect(self, est: "Estimator", t_ns: int) -> None:
+        """Finish the worker's jobs due at keyframe time ``t_ns`` (those submitted before a
+        reset are dropped: their world may have been re-anchored)."""
+        if self.worker is None or not self.worker.pending():
+            return
+        for (gen, age), (res, dt) in self.worker.due(t_ns):
+            if gen == self.generation:
+                self._finish_viba(est, age, res, dt)
+        if not self.worker.pending() and self.next_s == float("inf"):
+            self.next_s = (t_ns - self.t0) * 1e-9 if self.t0 is not None else self.cfg.first_s
+
+    def _finish_viba(self, est: "Estimator", age: float, res: viba.VibaResult, dt: float) -> None:
+        """Log the batch of the attempt at ``age`` (s after the start), schedule the next
+        one and, when its scale is well determined and significant, apply it."""
         self.log.append((age, res))
         if not res.ok:
             log.info("visual-inertial BA %.1f s after the start refused: %s", age, res.reason)
@@ -264,7 +293,7 @@ class ScaleRefiner:
             self._velocity_prior(est, res)
             return
         R = res.R_corr if self.cfg.ba_apply_tilt else gtsam.Rot3()
-        sim = Similarity(res.scale, R, res.pivot, T_b_c.translation())
+        sim = Similarity(res.scale, R, res.pivot, est.values.atPose3(graph.EXTRINSIC).translation())
         self._apply(est, sim, list(self.T))
 
     def _apply(self, est: "Estimator", sim: Similarity, ks: list) -> None:
