@@ -124,8 +124,9 @@ class RefineConfig:
     0.176%, MH_04@40 0.334 -> 0.133%, MH_05@40 0.300 -> 0.131%, MH_05@70 0.181 -> 0.200%,
     V1_02@30 0.078 -> 0.116%, V2_01@20 0.103 -> 0.184%, V2_02@25 0.060 -> 0.092% (every
     one within 0.2%, the good ones worse); real V1_01 KLT tracks 0.0267 -> 0.031 m (the
-    same in process: the world-point batch, not the delay). It evens the runs out rather
-    than improving them, so it stays off."""
+    same in process: the world-point batch, not the delay); the benchmark's takeoff
+    excerpts (60 s, td 5 ms) MH_04 0.172 -> 0.222%, V2_01 0.098 -> 0.167%, V2_02 0.067 ->
+    0.088%, MH_03 0.066 -> 0.073%, the other four within 0.006%. It evens the runs out rather than improving them, so it stays off."""
 
     enabled: bool = False
     method: Literal["viba", "inertial"] = "viba"
