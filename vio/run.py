@@ -63,10 +63,9 @@ class RunResult:
         return t, p, q
 
 
-# Image modes see ~150 KLT tracks at the camera rate (feature-track datasets ~20-40):
-# keyframes at most every 0.12 s (every third frame at 20 Hz) and 80 landmarks in the
-# window keep stereo above 1.5x real time at 752x480 on two cores with ATE ~1 cm
-# (benchmarks/bench_image_modes.py). A YAML file overrides these like any default.
+# Image modes see ~150 KLT tracks at the camera rate (feature-track datasets ~20-40): keyframes at
+# most every 0.12 s (every third frame at 20 Hz) and 80 landmarks in the window keep stereo above
+# 1.5x real time at 752x480 on two cores with ATE ~1 cm (benchmarks/bench_image_modes.py).
 MODE_DEFAULTS: dict[str, dict] = {
     mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
     for mode in ("mono", "stereo", "hybrid")
@@ -77,11 +76,12 @@ MODE_DEFAULTS: dict[str, dict] = {
 # for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8 mm, renders 7.2/2.7 -> 7.1/2.7 mm
 _PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005}
 MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
-# hybrid: the KLT landmarks' inverse depths eliminated inside per-anchor factors
-# (vio.backend.bundles): real MH_01 5.9 -> 6.0 mm, renders seed 14/21 7.2/2.7 -> 7.2/2.6 mm,
-# ~1 s less main-process CPU on MH_01 (the photometric factors dominate its cost); mono,
-# stereo and features keep landmark variables (mono MH_05 0.130 -> 0.197 m eliminated)
-MODE_DEFAULTS["hybrid"]["backend"]["vision"]["eliminate_depth"] = True
+# stereo and hybrid: landmark inverse depths eliminated inside per-anchor factors
+# (vio.backend.bundles). Stereo real MH_01: frame p95 / max 78 / 104 -> 41 / 53 ms, ATE 6.3
+# -> 6.2 mm (22 stretches within 0.3 mm, 9 renders -1.4..+1.4 mm); hybrid 5.9 -> 6.0 mm, ~1 s
+# less CPU. Mono keeps variables (real MH_05 from frames 0-150: mean 0.127 -> 0.178 m)
+for _mode in ("stereo", "hybrid"):
+    MODE_DEFAULTS[_mode]["backend"]["vision"]["eliminate_depth"] = True
 # hybrid: 100 photometric points per host instead of direct's 150 (the KLT landmarks hold
 # the geometry too): real MH_01 6.0 -> 6.1 mm, renders seed 14/21 7.2/2.6 -> 6.8/3.1 mm
 # (stereo 6.6 / 11.7 / 13.3 mm), wall 15.3 -> 13.9 s for 15.9 s of data on MH_01
