@@ -313,3 +313,19 @@ def test_variant_rows_get_their_own_table_with_the_twin_ratio():
             assert diff == set(VARIANTS[v]), (v, diff)
             n += 1
     assert n >= 12
+
+
+def test_stretch_copy_starts_the_cameras_at_the_frame(tmp_path):
+    """bench_stretches: the copy's camera lists begin at the start frame, everything else
+    (images, IMU, ground truth) is the original's; a start too close to the end refuses."""
+    from bench_stretches import stretch
+    from vio.io.euroc import load_euroc
+    src = shared("euroc_V1_01_static_stereo")
+    full = load_euroc(src)
+    part = load_euroc(stretch(src, 30, tmp_path / "s30"))
+    assert np.array_equal(part.cam0.t_ns, full.cam0.t_ns[30:])
+    assert np.array_equal(part.cam1.t_ns, full.cam1.t_ns[30:])
+    assert np.array_equal(part.imu.t_ns, full.imu.t_ns)
+    assert Path(part.cam0.files[0]).exists()
+    with pytest.raises(SystemExit, match="no stretch from frame"):
+        stretch(src, len(full.cam0.t_ns) - 5, tmp_path / "late")
