@@ -52,7 +52,8 @@ def test_every_row_filter_decodes_like_opencv(seed, tmp_path):
     h, w = int(rng.integers(1, 40)), int(rng.integers(1, 60))
     img = rng.integers(0, 256, (h, w)).astype(np.uint8)
     if seed % 2:
-        img = np.clip(np.add.outer(np.arange(h), np.arange(w)) * 3 + rng.integers(0, 4, (h, w)), 0, 255).astype(np.uint8)
+        ramp = np.add.outer(np.arange(h), np.arange(w)) * 3 + rng.integers(0, 4, (h, w))
+        img = np.clip(ramp, 0, 255).astype(np.uint8)
     data = _encode(img, rng.integers(0, 5, h), idat_parts=1 + seed)
     np.testing.assert_array_equal(decode_png_gray8(data), img)
     f = tmp_path / "a.png"

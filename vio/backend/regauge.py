@@ -267,8 +267,8 @@ class ScaleRefiner:
         for (gen, age), (res, dt) in self.worker.due(t_ns):
             if gen == self.generation:
                 self._finish_viba(est, age, res, dt)
-        if not self.worker.pending() and self.next_s == float("inf"):
-            self.next_s = (t_ns - self.t0) * 1e-9 if self.t0 is not None else self.cfg.first_s
+        if not self.worker.pending() and self.next_s == float("inf"):   # its result was dropped
+            self.next_s = (t_ns - self.t0) * 1e-9
 
     def _finish_viba(self, est: "Estimator", age: float, res: viba.VibaResult, dt: float) -> None:
         """Log the batch of the attempt at ``age`` (s after the start), schedule the next

@@ -126,7 +126,8 @@ class RefineConfig:
     one within 0.2%, the good ones worse); real V1_01 KLT tracks 0.0267 -> 0.031 m (the
     same in process: the world-point batch, not the delay); the benchmark's takeoff
     excerpts (60 s, td 5 ms) MH_04 0.172 -> 0.222%, V2_01 0.098 -> 0.167%, V2_02 0.067 ->
-    0.088%, MH_03 0.066 -> 0.073%, the other four within 0.006%. It evens the runs out rather than improving them, so it stays off."""
+    0.088%, MH_03 0.066 -> 0.073%, the other four within 0.006%. It evens the runs out
+    rather than improving them, so it stays off."""
 
     enabled: bool = False
     method: Literal["viba", "inertial"] = "viba"
