@@ -150,7 +150,8 @@ def _variant_spec(variant: str, gen: dict, seq: str, td: float, seed: int, durat
 def variant_datasets(quick: bool) -> list[DatasetSpec]:
     """The generator-variant table (seeds 400+, never used in development):
 
-    * ``boxwall`` (issue 20's generator) on ``VARIANT_SEQUENCES`` x ``VARIANT_TD_S``;
+    * ``boxwall`` (issue 20's generator) on ``VARIANT_SEQUENCES`` x ``VARIANT_TD_S``, and
+      ``boxwall-exact`` (the same tracks without pixel noise or outliers) at td 0;
     * ``ours`` and every one-respect variant (``one:*``, ``raw-gt-nearest``) on the
       ``ONE_RESPECT_SEQUENCE`` excerpt at td 0 and +25 ms (+12 ms for the nearest-row
       poses, which equal the interpolated ones on the 5-ms grid), same seed for all, so a
@@ -163,7 +164,9 @@ def variant_datasets(quick: bool) -> list[DatasetSpec]:
                 for td in (0.0, 0.025)]
     out = [_variant_spec("boxwall", VARIANTS["boxwall"], seq, td, 400 + SEQUENCES.index(seq), 60.0)
            for seq in VARIANT_SEQUENCES for td in VARIANT_TD_S]
-    for variant in ["ours"] + sorted(k for k in VARIANTS if k not in ("ours", "boxwall")):
+    out += [_variant_spec("boxwall-exact", VARIANTS["boxwall-exact"], seq, 0.0, 400 + SEQUENCES.index(seq), 60.0)
+            for seq in VARIANT_SEQUENCES]
+    for variant in ["ours"] + sorted(k for k in VARIANTS if k not in ("ours", "boxwall", "boxwall-exact")):
         for td in ONE_RESPECT_TD_S.get(variant, ONE_RESPECT_DEFAULT_TD_S):
             out.append(_variant_spec(variant, VARIANTS[variant], ONE_RESPECT_SEQUENCE, td, 420, 60.0))
     return out

@@ -209,8 +209,8 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
                "frames": str(Path(tmp) / "frames.npz"), "mode": ds.run_mode(spec.mode),
                "max_frames": spec.max_frames, "overrides": overrides or {}}
         ours = metrics(run_job({**job, "system": "ours"}), gt, spec.td_true_s)
-        if spec.mode == "variants":
-            base = {"skipped": "the generator-variant table measures ours only"}
+        if spec.mode == "variants" and spec.td_true_s:
+            base = {"skipped": "the baseline has no td factor: variant rows compare it at td = 0 only"}
         elif spec.mode in NO_BASELINE:
             base = {"skipped": NO_BASELINE[spec.mode]}
         else:

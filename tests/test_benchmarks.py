@@ -288,7 +288,7 @@ def test_variant_rows_get_their_own_table_with_the_twin_ratio():
     res["accuracy"]["runs"] += [row(0, 0.04, -0.1), row(25, 0.05, 24.7)]
     md = report.render(res)
     assert "### Generator variants" in md
-    assert "| boxwall:SEQ@0+60s/td25ms | 25.0 | 24.70 | -0.30 | 0.050 | 0.100 | 1.25 |" in md
+    assert "| boxwall:SEQ@0+60s/td25ms | 25.0 | 24.70 | -0.30 | 0.050 | 0.100 | 1.25 | n/a |" in md
     assert md.split("### Generator variants")[0].rstrip() == base.split("Skipped:")[0].rstrip() or \
         "boxwall" not in md.split("### Generator variants")[0]
     import datasets as ds
@@ -301,6 +301,13 @@ def test_variant_rows_get_their_own_table_with_the_twin_ratio():
     assert all(s.twin is None or s.twin.endswith("/td0ms") and s.twin in names
                and s.twin.split(":")[0] == s.name.split(":")[0] for s in specs)
     assert dict(specs[0].gen)["selection"] == "random"
+    # the exact boxwall rows: td 0 only, the boxwall seeds, no pixel noise or outliers
+    exact = [s for s in specs if s.name.startswith("boxwall-exact:")]
+    assert len(exact) == 3 and {s.td_true_s for s in exact} == {0.0}
+    for s in exact:
+        noisy = next(n for n in specs if n.name == s.name.replace("boxwall-exact:", "boxwall:"))
+        ge, gn = s.gen_config(), noisy.gen_config()
+        assert ge.seed == gn.seed and ge.noise_px == 0 and ge.outlier_rate == 0
     # one respect each: same excerpt and seed as ours, generator settings differ only there
     from vio.sim.variants import VARIANTS
     from dataclasses import asdict

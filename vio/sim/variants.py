@@ -25,6 +25,10 @@ VARIANTS: dict[str, dict] = {
     # 0.7-px noise (as ours); 1% gross outliers displaced by up to ~45 px (no swaps);
     # camera poses from the raw 200-Hz ground truth.
     "boxwall": {**_RAW_GT, **_FAR_WALLS, **_TRACKS_60, **_RANDOM_PICK, **_LOSS_3PCT, **_OUTLIERS},
+    # issue 20's generator without pixel noise or outliers (same seeds as ``boxwall``): what
+    # its ground truth alone costs an estimator, the floor under the boxwall rows
+    "boxwall-exact": {**_RAW_GT, **_FAR_WALLS, **_TRACKS_60, **_RANDOM_PICK, **_LOSS_3PCT,
+                      "noise_px": 0.0, "outlier_rate": 0.0},
     # one respect each
     "one:raw-gt": _RAW_GT,
     "one:far-walls": _FAR_WALLS,
