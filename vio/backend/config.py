@@ -190,6 +190,7 @@ class VisionConfig:
     max_rejections: int = 3
     anchor_noise: bool = True
     marginalize_reanchored: bool = True
+    reanchor: Literal["anchor", "point"] = "anchor"
     reanchor_sigma: float = 1e-4
     min_parallax_deg: float = 1.0
     max_wait_keyframes: int = 6

@@ -33,6 +33,7 @@ B = gtsam.symbol_shorthand.B
 E = gtsam.symbol_shorthand.E
 D = gtsam.symbol_shorthand.D
 L = gtsam.symbol_shorthand.L
+P = gtsam.symbol_shorthand.P   # world-point landmarks (vio.backend.point_tracks)
 
 EXTRINSIC = E(0)
 TD = D(0)

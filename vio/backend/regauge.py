@@ -71,6 +71,8 @@ class Similarity:
                 out.insert(key, self.velocity(vals.atVector(key)))
             elif ch == "l":
                 out.insert(key, vals.atVector(key) / self.s)
+            elif ch == "p":      # world points (vio.backend.point_tracks) move like camera centres
+                out.insert(key, self.pivot + self.s * self.Rm @ (vals.atVector(key) - self.pivot) + self.shift)
             elif ch == "b":
                 out.insert(key, vals.atConstantBias(key))
             elif ch == "e":
@@ -123,6 +125,8 @@ def apply_similarity(est: "Estimator", sim: Similarity) -> None:
     remap = dict(zip(order, (int(i) for i in idx)))
     for tr in est.lm.tracks.values():
         tr.factor_indices = [remap[i] for i in tr.factor_indices if i in remap]
+    for pt in est.lm.points.tracks.values():
+        pt.index = remap.get(pt.index) if pt.index is not None else None
     est.smoother = new
     est.values = new.calculateEstimate()
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from vio.backend import graph
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
+from vio.backend.point_tracks import PointTracks
 from vio.backend.td_velocity import predicted_velocities
 from vio.backend.track_factor import build_track_factor
 from vio.io.types import FeatureFrame
@@ -44,6 +45,7 @@ class LandmarkManager:
         self._calib_cache: tuple | None = None   # (T_b_c, td) of the current update
         self._rig = None                         # factors.stereo.StereoRig of est.C_stereo
         self._rig_c1 = None                      # (R_c1_c0, t_c0_c1) for the cam1 velocities
+        self.points = PointTracks(est)           # tracks whose anchor left (VisionConfig.reanchor)
         graph.compile_kernels()                  # not at the first keyframe: a stall there
 
     # ------------------------------------------------------------ bookkeeping
@@ -57,14 +59,15 @@ class LandmarkManager:
             lid = int(lid)
             if lid in self.rejected:
                 continue
-            tr = self.tracks.setdefault(lid, Track(lid))
             has_r = bool(np.all(np.isfinite(ruv)))
-            tr.obs[k] = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row),
-                            np.asarray(ruv, float) if has_r else None,
-                            np.asarray(rv, float) if has_r else None, float(td_obs))
+            o = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row),
+                    np.asarray(ruv, float) if has_r else None, np.asarray(rv, float) if has_r else None,
+                    float(td_obs))
+            if not self.points.observe(lid, k, o):
+                self.tracks.setdefault(lid, Track(lid)).obs[k] = o
 
     def n_active(self) -> int:
-        return sum(1 for t in self.tracks.values() if t.key is not None)
+        return sum(1 for t in self.tracks.values() if t.key is not None) + len(self.points.tracks)
 
     def reset(self) -> None:
         """After a solver restart: forget keys and factors, keep the newest observations."""
@@ -76,6 +79,7 @@ class LandmarkManager:
             tr.waited = 0
         self.tracks = {i: t for i, t in self.tracks.items() if t.obs}
         self._pending = []
+        self.points.reset()
 
     def _new_key(self) -> int:
         self._next_key += 1
@@ -86,6 +90,7 @@ class LandmarkManager:
         for tr, pos in self._pending:
             tr.factor_indices.append(int(idx[pos]))
         self._pending = []
+        self.points.record_factor_indices(idx)
 
     # ----------------------------------------------------------- graph update
     def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
@@ -99,8 +104,12 @@ class LandmarkManager:
         self._calib_cache: tuple | None = None
         t = self.est.kf_t[k] * 1e-9
         leave = set(leaving)
+        self.points.begin_update(lambda: self._motion_table(k, pred))
+        self.points.prepare_update(k, t, leave, g, stamps, removals)
+        to_point = self.points.usable()
         # the cap counts live landmarks only (dead ones wait for marginalization)
-        n_active = sum(1 for tr in self.tracks.values() if tr.key is not None and k in tr.obs)
+        n_active = (sum(1 for tr in self.tracks.values() if tr.key is not None and k in tr.obs)
+                    + self.points.n_live(k))
         # longest tracks first, so the landmark cap keeps the best-constrained ones
         for lid in sorted(self.tracks, key=lambda i: -len(self.tracks[i].obs)):
             tr = self.tracks[lid]
@@ -122,6 +131,14 @@ class LandmarkManager:
             if tr.key is None and n_active < self.est.cfg.vision.max_landmarks:
                 self._try_insert(tr, k, pred, v)
                 n_active += tr.key is not None
+                if to_point and tr.key is not None:    # a world point from now on
+                    a = tr.obs[tr.anchor]
+                    T = self._pose(tr.anchor, k, pred).compose(self.est.values.atPose3(graph.EXTRINSIC))
+                    p_w = T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / v.atVector(tr.key)[0])
+                    v.erase(tr.key)
+                    self.points.convert(tr.lid, p_w, tr.obs, t, g, v, stamps)
+                    del self.tracks[lid]
+                    continue
             if tr.key is not None and (len(tr.obs) >= 2 or tr.stereo_frames()):
                 removals.extend(tr.factor_indices)
                 tr.factor_indices = []
@@ -362,12 +379,19 @@ class LandmarkManager:
             if lid in bad_ids:
                 self._retire_key(tr, g, stamps, removals)
                 del self.tracks[lid]
-                self.strikes[lid] = self.strikes.get(lid, 0) + 1
-                if self.strikes[lid] >= vc.max_rejections:
-                    self.rejected.add(lid)
-                    del self.strikes[lid]
+                self._strike(lid)
                 n += 1
+        for lid in self.points.outlier_removals(values, g, stamps, removals):
+            self._strike(lid)
+            n += 1
         return g, stamps, removals, n
+
+    def _strike(self, lid: int) -> None:
+        """Count a rejection of ``lid``; at ``max_rejections`` it is ignored for good."""
+        self.strikes[lid] = self.strikes.get(lid, 0) + 1
+        if self.strikes[lid] >= self.est.cfg.vision.max_rejections:
+            self.rejected.add(lid)
+            del self.strikes[lid]
 
     def points_w(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
         """Ids (N,) and world points (N, 3) of the tracks in the graph."""
@@ -383,5 +407,6 @@ class LandmarkManager:
             T = values.atPose3(graph.X(tr.anchor)).compose(T_b_c)
             pts.append(T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam))
             ids.append(tr.lid)
-        return np.array(ids, dtype=np.int64), np.array(pts).reshape(-1, 3)
+        pids, ppts = self.points.points_w(values)
+        return np.array(ids + pids, dtype=np.int64), np.array(pts + ppts).reshape(-1, 3)
 
