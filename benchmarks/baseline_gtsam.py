@@ -338,7 +338,7 @@ def replay(vio: BaselineVIO, data: EurocDataset, sched: Schedule, frames: list,
             res.n_init = 1
             continue
         integrate(vio.pim, pkt.imu)
-        still = sched.keyframes.get(pkt.t_ns)
+        still = sched.keyframe_at(pkt.t_ns)
         if still is not None:
             vio.add_keyframe(pkt.t_ns, pkt.features, still)
             res.keyframes += 1

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import cached_property
 
 import gtsam
 import numpy as np
@@ -32,6 +33,21 @@ class Schedule:
         return {"td_s": self.td_s, "keyframes": [[t, bool(f)] for t, f in sorted(self.keyframes.items())],
                 "init": {"t_ns": s.t_ns, "T_w_b": s.T_w_b.matrix().tolist(), "v_w": list(map(float, s.v_w)),
                          "bias": s.bias.vector().tolist(), "method": s.method}}
+
+    @cached_property
+    def _times(self) -> np.ndarray:
+        return np.array(sorted(self.keyframes), np.int64)
+
+    def keyframe_at(self, t_ns: int, tol_ns: int = 10_000_000) -> bool | None:
+        """The still flag of the keyframe scheduled at frame time ``t_ns``, or None. Our
+        sync layer may have moved a frame's stamp by its td feedback (a few ms,
+        ``CalibConfig.td_feedback_s``) where the replay applies the constant ``td_s``, so
+        the nearest scheduled keyframe within ``tol_ns`` (well under a frame period) matches."""
+        times = self._times
+        i = int(np.searchsorted(times, t_ns))
+        near = [int(times[j]) for j in (i - 1, i) if 0 <= j < len(times)]
+        best = min(near, key=lambda t: abs(t - t_ns), default=None)
+        return None if best is None or abs(best - t_ns) > tol_ns else self.keyframes[best]
 
     @staticmethod
     def from_json(d: dict) -> "Schedule":

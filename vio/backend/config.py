@@ -163,6 +163,15 @@ class VisionConfig:
     depth-transfer factor (relative depth sigma ``reanchor_sigma``) ties the old key to the
     new one, both marginalized with those keyframes; off, they are dropped, which on long
     tracks keeps only the window's last 2.5 s of each track.
+    ``reanchor``: what a triangulated monocular track becomes, ``"anchor"`` (the VINS-Mono
+    inverse depth on its first observation's ray, re-anchored when that keyframe leaves)
+    or ``"point"`` (a world point with every observation an ordinary measurement,
+    ``vio.backend.point_tracks``; a low-parallax entry gets an isotropic prior of
+    ``point_prior_sigma_m``). Measured (generated tracks, real IMU): the anchored
+    trajectory comes out 0.5-2% short where a GTSAM-native ``Point3`` pipeline and the
+    world points do not (``bench_midflight``: MH_04@40 0.378 -> 0.236%, MH_05@40 0.312 ->
+    0.141%); real V1_01 features 0.0267 / 0.0266 m; real MH_05 mono starts at frames
+    0-150 mean 0.127 (anchor) / 0.135 m (point), each single run chaotic at +-50%.
     ``eliminate_depth``: landmarks keep their inverse depth inside the factor instead of
     as a graph variable: one factor per anchor keyframe over all landmarks anchored there,
     depths Schur-eliminated at each linearization (``vio.backend.bundles``,
@@ -191,6 +200,7 @@ class VisionConfig:
     anchor_noise: bool = True
     marginalize_reanchored: bool = True
     reanchor: Literal["anchor", "point"] = "anchor"
+    point_prior_sigma_m: float = 20.0
     reanchor_sigma: float = 1e-4
     min_parallax_deg: float = 1.0
     max_wait_keyframes: int = 6

@@ -57,6 +57,10 @@ class Similarity:
         R2 = self.Rm @ Rb
         return gtsam.Pose3(gtsam.Rot3(R2), c2 - R2 @ self.t_bc)
 
+    def point(self, p_w: np.ndarray) -> np.ndarray:
+        """A world point moves like a camera centre."""
+        return self.pivot + self.s * self.Rm @ (np.asarray(p_w, float) - self.pivot) + self.shift
+
     def velocity(self, v: np.ndarray) -> np.ndarray:
         return self.s * self.Rm @ np.asarray(v, float)
 
@@ -71,8 +75,8 @@ class Similarity:
                 out.insert(key, self.velocity(vals.atVector(key)))
             elif ch == "l":
                 out.insert(key, vals.atVector(key) / self.s)
-            elif ch == "p":      # world points (vio.backend.point_tracks) move like camera centres
-                out.insert(key, self.pivot + self.s * self.Rm @ (vals.atVector(key) - self.pivot) + self.shift)
+            elif ch == "p":      # world points (vio.backend.point_tracks)
+                out.insert(key, self.point(vals.atVector(key)))
             elif ch == "b":
                 out.insert(key, vals.atConstantBias(key))
             elif ch == "e":
@@ -94,6 +98,8 @@ def _factor(f, sim: Similarity, lin: gtsam.Values):
         return gtsam.PriorFactorPose3(f.keys()[0], sim.pose(f.prior()), f.noiseModel())
     if isinstance(f, gtsam.PriorFactorVector) and chr(gtsam.Symbol(f.keys()[0]).chr()) == "v":
         return gtsam.PriorFactorVector(f.keys()[0], sim.velocity(f.prior()), f.noiseModel())
+    if isinstance(f, gtsam.PriorFactorVector) and chr(gtsam.Symbol(f.keys()[0]).chr()) == "p":
+        return gtsam.PriorFactorVector(f.keys()[0], sim.point(f.prior()), f.noiseModel())
     return f
 
 
