@@ -27,7 +27,6 @@ from factors.adapter import custom_factor
 from factors.jit import njit
 from factors.projection import BEHIND_CAMERA_RESIDUAL
 
-_KERNELS = {None: (0, 0.0)}
 MIN_DEPTH = 1e-3
 
 

@@ -16,11 +16,10 @@ X, P, T = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.P, gtsam.symbol_short
 
 
 def point_case(name: str, n: int = 3, *, use_td: bool = True, vel_scale: float = 1.0, behind: bool = False,
-               kernel: tuple[int, float] = (0, 0.0), degenerate: bool = False, **scene_kw) -> JacobianCase:
+               degenerate: bool = False, **scene_kw) -> JacobianCase:
     def build(rng: np.random.Generator):
-        Ti, poses, Tc, lam, uvi, uvs = scene(rng, n - 1, **scene_kw) if n > 1 else (*scene(rng, 1, **scene_kw)[:1],
-                                                                                     [], *scene(rng, 1)[2:])
-        bodies = [Ti, *poses]
+        Ti, poses, Tc, lam, uvi, uvs = scene(rng, max(n - 1, 1), **scene_kw)
+        bodies = [Ti, *poses][:n]
         uv = np.vstack([uvi[None, :], np.asarray(uvs).reshape(-1, 2)])[:n]
         p_w = Ti.compose(Tc).transformFrom(np.append(uvi, 1.0) / lam) + rng.normal(size=3) * 0.01
         if behind:   # the point behind the first camera: constant residual, zero Jacobian rows
@@ -30,7 +29,7 @@ def point_case(name: str, n: int = 3, *, use_td: bool = True, vel_scale: float =
         td = 0.012 if use_td else None
         keys = [P(0)] + [X(i) for i in range(n)] + ([T(0)] if use_td else [])
         factor = world_point_factor(P(0), [X(i) for i in range(n)], T(0) if use_td else None, Tc, uv, vel, off,
-                                    0.01, kernel)
+                                    0.01)
         values = gtsam.Values()
         values.insert(P(0), np.asarray(p_w, float))
         for i, B in enumerate(bodies):
@@ -42,7 +41,7 @@ def point_case(name: str, n: int = 3, *, use_td: bool = True, vel_scale: float =
         def residual(v: gtsam.Values):
             args = [v.atPose3(k) if kind == "pose3" else v.atVector(k) for k, kind in zip(keys, kinds)]
             r, J = world_point_residual(args[0], Tc, args[1:1 + n], uv, vel, off,
-                                        float(args[-1][0]) if use_td else None, 0.01, kernel)
+                                        float(args[-1][0]) if use_td else None, 0.01)
             cols = np.cumsum([0] + [6 if k == "pose3" else k for k in kinds])
             return r, [J[:, a:b] for a, b in zip(cols[:-1], cols[1:])]
 

@@ -3,14 +3,13 @@
 A track enters the graph once its depth can be triangulated (``vio.backend.tracks``);
 here it then becomes a world point ``p_w`` (a 3-vector key) observed through one
 ``factors.world_point`` factor over its observations in the window, td included (seed
-004's shift with the measured image velocities). The anchored inverse depth of the
+004's shift with state-predicted image velocities). The anchored inverse depth of the
 VINS-Mono factor takes the first observation as the point's exact ray (its noise only
-whitened to first order) and must be re-anchored when that keyframe leaves; measured on
-generated tracks from real IMU (mid-flight excerpts, td 0), its trajectory came out
-0.5-1.5% short and a GTSAM-native pipeline keeping ``Point3`` landmarks (same lag,
-keyframes, IMU and noise) had the right scale: this module is that representation with
-td, and had the baseline's scale and ATE on every excerpt measured (module README figures
-in ``VisionConfig``).
+whitened to first order) and must be re-anchored when that keyframe leaves. Measured on
+generated tracks from real IMU (mid-flight excerpts), the anchored trajectory came out
+0.5-2% short, while a GTSAM-native pipeline keeping ``Point3`` landmarks (same lag,
+keyframes, IMU and noise) and these world points had the right scale (figures in
+``VisionConfig``; world points only after re-anchoring changed nothing).
 
 Life cycle per keyframe: a live point's factor is rebuilt with the new observation;
 when keyframes leave the window, the observations they hold move into a farewell factor
