@@ -115,17 +115,15 @@ class PointTracks:
         if vc.td_velocity != "predicted" or self._table is None:
             return meas
         pos, R, t, w, v = self._table()
-        out = np.zeros_like(meas)
-        for i, f in enumerate(frames):
-            j = pos[f]
-            pc = R[j].T @ (p_w - t[j])
-            if pc[2] < vc.min_depth_m:
-                continue
-            dp = -np.cross(w[j], pc) - v[j]
-            pred = (dp[:2] * pc[2] - pc[:2] * dp[2]) / pc[2] ** 2
-            if np.linalg.norm(pred - meas[i]) <= vc.td_velocity_gate:
-                out[i] = pred
-        return graph._td_velocity(out, vc.td_velocity_max)
+        j = np.array([pos[f] for f in frames])
+        pc = np.einsum("nab,na->nb", R[j], p_w - t[j])          # R_w_c^T (p_w - t_w_c)
+        dp = -np.cross(w[j], pc) - v[j]
+        z = pc[:, 2:3]
+        front = z[:, 0] >= vc.min_depth_m
+        zs = np.where(front[:, None], z, 1.0)
+        pred = (dp[:, :2] * zs - pc[:, :2] * dp[:, 2:3]) / zs ** 2
+        ok = front & (np.linalg.norm(pred - meas, axis=1) <= vc.td_velocity_gate)
+        return graph._td_velocity(np.where(ok[:, None], pred, 0.0), vc.td_velocity_max)
 
     def _factor(self, pt: PointTrack, frames: list[int], p_w: np.ndarray | None = None) -> gtsam.NonlinearFactor:
         """The world-point factor of ``pt``'s observations in ``frames``: each moved by
@@ -187,24 +185,23 @@ class PointTracks:
         smoother marginalizes it."""
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
-        T_b_c = values.atPose3(graph.EXTRINSIC)
         td = float(values.atVector(graph.TD)[0]) if vc.use_td and values.exists(graph.TD) else 0.0
+        pos, R, t = graph.camera_table(values, sorted(self.est.kf_t))
         bad = []
         for lid, pt in self.tracks.items():
-            if pt.index is None or not values.exists(pt.key):
+            if pt.index is None or not values.exists(pt.key) or any(f not in pos for f in pt.frames):
                 continue
             p = np.asarray(values.atVector(pt.key), float)
             obs = [pt.obs[f] for f in pt.frames]
             vel = graph._td_velocity(np.array([o.velocity for o in obs]), vc.td_velocity_max)
             off = graph._row_offsets(obs, self.est.cam.line_time_s)
-            worst = 0.0
-            for i, f in enumerate(pt.frames):
-                q = values.atPose3(graph.X(f)).compose(T_b_c).transformTo(p)
-                if not vc.min_depth_m <= q[2] <= vc.max_depth_m:
-                    worst = np.inf
-                    break
-                uv = obs[i].uv - (td + off[i]) * vel[i]
-                worst = max(worst, float(np.hypot(*(q[:2] / q[2] - uv))) * fx)
+            j = np.array([pos[f] for f in pt.frames])
+            q = np.einsum("nab,na->nb", R[j], p - t[j])
+            if not np.all((q[:, 2] >= vc.min_depth_m) & (q[:, 2] <= vc.max_depth_m)):
+                worst = np.inf
+            else:
+                uv = np.array([o.uv for o in obs]) - (td + off)[:, None] * vel
+                worst = float(np.max(np.linalg.norm(q[:, :2] / q[:, 2:3] - uv, axis=1))) * fx
             if worst > vc.outlier_px:
                 removals.append(pt.index)
                 g.add(gtsam.PriorFactorVector(pt.key, p, WEAK_POINT))
