@@ -169,8 +169,8 @@ class VisionConfig:
     ``vio.backend.point_tracks``; a low-parallax entry gets an isotropic prior of
     ``point_prior_sigma_m``). Measured (generated tracks, real IMU): the anchored
     trajectory comes out 0.5-2% short where a GTSAM-native ``Point3`` pipeline and the
-    world points do not (``bench_midflight``: MH_04@40 0.378 -> 0.236%, MH_05@40 0.312 ->
-    0.141%); real V1_01 features 0.0267 / 0.0266 m; real MH_05 mono starts at frames
+    world points do not (``bench_midflight``: MH_04@40 0.378 -> 0.235%, MH_05@40 0.312 ->
+    0.165%); real V1_01 features 0.0267 / 0.0266 m; real MH_05 mono starts at frames
     0-150 mean 0.127 (anchor) / 0.135 m (point), each single run chaotic at +-50%.
     ``eliminate_depth``: landmarks keep their inverse depth inside the factor instead of
     as a graph variable: one factor per anchor keyframe over all landmarks anchored there,
