@@ -107,15 +107,15 @@ MODE_DEFAULTS["hybrid"]["backend"]["vision"]["max_landmarks"] = 40
 # 3.9 / 3.1 mm. 100 and 75 save 0.3-0.8 s more but give 6.9 / 6.5 mm on real MH_01
 # (stereo 6.3)
 MODE_DEFAULTS["hybrid"]["frontend"] = {"max_features": 120}
-# direct: no factor of the photometric points involves td (it is unobservable there), so
-# it is held at the sync layer's value (``--td``) instead of being reported as estimated;
-# keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
 # features: triangulated tracks become world points (vio.backend.point_tracks): the anchored
 # inverse depths left generated mid-flight excerpts 0.5-2% short (bench_midflight MH_04@40
 # 0.378 -> 0.235%, MH_05@40 0.312 -> 0.165%; unseen starts MH_05@55 0.635 -> 0.188%, MH_03@80
 # 0.162 -> 0.103%); real V1_01 0.0267 -> 0.0265 m. Mono keeps the anchored inverse depths:
 # real MH_05 starts at frames 0-150 gave a mean 0.127 (anchor) / 0.135 m (points), chaotic
 MODE_DEFAULTS["features"] = {"backend": {"vision": {"reanchor": "point"}}}
+# direct: no factor of the photometric points involves td (it is unobservable there), so
+# it is held at the sync layer's value (``--td``) instead of being reported as estimated;
+# keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
 MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}, "solver": dict(_PHOTOMETRIC_SOLVER),
                                        "keyframe": {"min_parallax_px": 40.0}}}
 

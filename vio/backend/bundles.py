@@ -336,9 +336,7 @@ class EliminatedLandmarks(LandmarkManager):
         for tr in self.tracks.values():
             if tr.key is None or tr.lam <= 0 or not values.exists(graph.X(tr.anchor)):
                 continue
-            a = tr.obs[tr.anchor]
-            T = values.atPose3(graph.X(tr.anchor)).compose(T_b_c)
-            pts.append(T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / tr.lam))
+            pts.append(tr.anchor_point(values.atPose3(graph.X(tr.anchor)).compose(T_b_c), tr.lam))
             ids.append(tr.lid)
         return np.array(ids, dtype=np.int64), np.array(pts).reshape(-1, 3)
 

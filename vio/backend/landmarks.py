@@ -59,6 +59,12 @@ class Track:
     def stereo_frames(self) -> list[int]:
         return [f for f in self.frames() if self.obs[f].right_uv is not None]
 
+    def anchor_point(self, T_w_c: gtsam.Pose3, lam: float) -> np.ndarray:
+        """The point (3,) at inverse depth ``lam`` (1/m) on the anchor observation's ray,
+        in the frame ``T_w_c`` (the anchor camera's pose) maps into."""
+        a = self.obs[self.anchor]
+        return T_w_c.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
+
 
 def bearing_depth(anchor_uv: np.ndarray, T_w_ca: gtsam.Pose3,
                   others: list[tuple[np.ndarray, gtsam.Pose3]]) -> tuple[float, float]:

@@ -132,7 +132,7 @@ def apply_similarity(est: "Estimator", sim: Similarity) -> None:
     for tr in est.lm.tracks.values():
         tr.factor_indices = [remap[i] for i in tr.factor_indices if i in remap]
     for pt in est.lm.points.tracks.values():
-        pt.index = remap.get(pt.index) if pt.index is not None else None
+        pt.index = remap.get(pt.index)
     est.smoother = new
     est.values = new.calculateEstimate()
 

@@ -45,7 +45,7 @@ class LandmarkManager:
         self._calib_cache: tuple | None = None   # (T_b_c, td) of the current update
         self._rig = None                         # factors.stereo.StereoRig of est.C_stereo
         self._rig_c1 = None                      # (R_c1_c0, t_c0_c1) for the cam1 velocities
-        self.points = PointTracks(est)           # tracks whose anchor left (VisionConfig.reanchor)
+        self.points = PointTracks(est)           # triangulated tracks as world points (VisionConfig.reanchor)
         graph.compile_kernels()                  # not at the first keyframe: a stall there
 
     # ------------------------------------------------------------ bookkeeping
@@ -132,11 +132,7 @@ class LandmarkManager:
                 self._try_insert(tr, k, pred, v)
                 n_active += tr.key is not None
                 if to_point and tr.key is not None:    # a world point from now on
-                    a = tr.obs[tr.anchor]
-                    T = self._pose(tr.anchor, k, pred).compose(self.est.values.atPose3(graph.EXTRINSIC))
-                    p_w = T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / v.atVector(tr.key)[0])
-                    v.erase(tr.key)
-                    self.points.convert(tr.lid, p_w, tr.obs, t, g, v, stamps)
+                    self._to_point(tr, k, pred, t, g, v, stamps)
                     del self.tracks[lid]
                     continue
             if tr.key is not None and (len(tr.obs) >= 2 or tr.stereo_frames()):
@@ -177,6 +173,15 @@ class LandmarkManager:
                 g.add(graph.build_depth_transfer(old_key, tr.key, old_anchor, tr.anchor,
                                                  leaving[old_anchor].uv, lam_o, old_shift, self.est.cfg))
 
+    def _to_point(self, tr: Track, k: int, pred: gtsam.NavState, t: float, g: gtsam.NonlinearFactorGraph,
+                  v: gtsam.Values, stamps: dict) -> None:
+        """A just-inserted track handed to ``self.points`` at the point its inverse depth
+        says (``VisionConfig.reanchor = "point"``); the inverse-depth value is dropped."""
+        T_w_c = self._pose(tr.anchor, k, pred).compose(self.est.values.atPose3(graph.EXTRINSIC))
+        p_w = tr.anchor_point(T_w_c, float(v.atVector(tr.key)[0]))
+        v.erase(tr.key)
+        self.points.convert(tr.lid, p_w, tr.obs, t, g, v, stamps)
+
     def _retire_key(self, tr: Track, g: gtsam.NonlinearFactorGraph, stamps: dict,
                     removals: list[int]) -> None:
         """Detach a track's factor; its old key keeps a weak prior and is marginalized."""
@@ -193,9 +198,7 @@ class LandmarkManager:
         lam = self._lam(tr)
         if lam is None or lam <= 0:
             return None
-        a = tr.obs[tr.anchor]
-        T = vals.atPose3(graph.X(tr.anchor)).compose(vals.atPose3(graph.EXTRINSIC))
-        return T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
+        return tr.anchor_point(vals.atPose3(graph.X(tr.anchor)).compose(vals.atPose3(graph.EXTRINSIC)), lam)
 
     def _reanchor(self, tr: Track, p_w: np.ndarray, k: int, pred: gtsam.NavState,
                   v: gtsam.Values) -> None:
@@ -403,9 +406,7 @@ class LandmarkManager:
             lam = float(values.atVector(tr.key)[0])
             if lam <= 0:
                 continue
-            a = tr.obs[tr.anchor]
-            T = values.atPose3(graph.X(tr.anchor)).compose(T_b_c)
-            pts.append(T.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam))
+            pts.append(tr.anchor_point(values.atPose3(graph.X(tr.anchor)).compose(T_b_c), lam))
             ids.append(tr.lid)
         pids, ppts = self.points.points_w(values)
         return np.array(ids + pids, dtype=np.int64), np.array(pts + ppts).reshape(-1, 3)
