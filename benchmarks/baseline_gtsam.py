@@ -4,7 +4,7 @@ Built only from GTSAM's C++ factors: ``CombinedImuFactor`` between keyframes,
 ``GenericProjectionFactorCal3_S2`` (Huber, pixel units, ``body_P_sensor = T_b_c``)
 from each keyframe to a triangulated ``Point3`` landmark, ``PriorFactor``s for the
 first state and zero-velocity updates, all inside ``gtsam.IncrementalFixedLagSmoother``
-with the same lag, factorization (QR) and relinearization settings as ours.
+with the same lag, factorization (Cholesky) and relinearization settings as ours.
 
 Fairness: the keyframes (and their still flags), the initial state, the IMU noise
 (``vio.imu.combined_params``), the midpoint preintegration (``vio.imu.integrate``)

@@ -112,6 +112,9 @@ class EliminatedLandmarks(LandmarkManager):
         members = self.groups[a][0] if a in self.groups else []
         return sorted({i for tr in members for i in tr.factor_indices})
 
+    def _indexed(self):
+        return [*self.tracks.values(), *(tr for members, _, _ in self.groups.values() for tr in members)]
+
     def record_factor_indices(self, indices) -> None:
         idx = list(indices)
         for a, pos in self._pending_groups:

@@ -270,15 +270,17 @@ class CalibConfig:
 @dataclass(frozen=True)
 class SolverConfig:
     """Fixed-lag smoother. ``lag_s``: window length; ``relinearize_*`` map onto
-    ``ISAM2Params``. QR factorization avoids GTSAM 4.3's Cholesky rejecting
-    ill-conditioned (not singular) pivots on real data. ``wildfire_threshold``: iSAM2
-    stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
+    ``ISAM2Params``. ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
+    Householder QR (real MH_05 mono: main process CPU 6.63 -> 4.68 s, p95 per frame
+    111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
+    the update is re-solved with QR (``vio.backend.rebuild``). ``wildfire_threshold``:
+    iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
     time offset td (seconds), whose steps are ~1e-4."""
 
     lag_s: float = 2.5
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 10
-    factorization: Literal["QR", "CHOLESKY"] = "QR"
+    factorization: Literal["QR", "CHOLESKY"] = "CHOLESKY"
     wildfire_threshold: float = 1e-6
     td_relinearize_threshold: float = 1e-4
     extra_iterations: int = 0

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import gtsam
 import numpy as np
 
-from vio.backend import graph
+from vio.backend import graph, rebuild
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
@@ -58,7 +58,8 @@ class FactorSource(Protocol):
     the IMU prediction; ``leaving`` are the keyframes marginalized by this update) and
     returns smoother factor indices to remove; ``record_factor_indices`` receives the
     smoother indices of *all* new factors of the update (the source kept the positions
-    ``g.size()`` of its own when adding them). ``reset`` forgets all graph state after
+    ``g.size()`` of its own when adding them); ``remap_factor_indices`` maps them to new
+    slots after a smoother rebuild (``vio.backend.rebuild``). ``reset`` forgets all graph state after
     a solver restart. ``key_dims`` maps the key characters it uses to their dimensions
     (for the relinearization thresholds)."""
 
@@ -70,6 +71,8 @@ class FactorSource(Protocol):
                        g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> list[int]: ...
 
     def record_factor_indices(self, indices: list[int]) -> None: ...
+
+    def remap_factor_indices(self, remap: dict[int, int]) -> None: ...
 
     def reset(self) -> None: ...
 
@@ -121,15 +124,18 @@ class Estimator:
         self.rates = KeyframeRates()
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
+        self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.rebuild)
+        self.qr_since_ns: int | None = None
+        self.qr_resolves = 0
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
         self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
 
     # ------------------------------------------------------------------ setup
-    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
         s = self.cfg.solver
         p = gtsam.ISAM2Params()
-        p.setFactorization(s.factorization)
+        p.setFactorization(factorization or s.factorization)
         extra = {ch: d for src in self.sources for ch, d in src.key_dims.items()}
         p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold,
                                                  extra))
@@ -157,6 +163,7 @@ class Estimator:
         (``init``: the prior sigmas, default ``cfg.init``; ``priors``: the state's priors
         instead)."""
         self.smoother = self._new_smoother()
+        self.smoother_factorization, self.qr_since_ns = self.cfg.solver.factorization, None
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)
@@ -223,6 +230,7 @@ class Estimator:
         ``gyro``: the raw gyro reading (rad/s, body) at ``t_ns``, for predicted
         feature velocities (see ``vio.imu.KeyframeRates``);
         ``frame``: the pipeline's packet, passed to ``sources``."""
+        rebuild.maybe_back_to_cholesky(self)    # before any factor slot is read
         k0, k1 = self.k, self.k + 1
         div0 = self.divergences
         pred = self.predict()
@@ -278,8 +286,11 @@ class Estimator:
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
 
     def _update(self, g, v, stamps, removals) -> None:
-        self.smoother.update(g, v, stamps, removals)
-        indices = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+        try:
+            self.smoother.update(g, v, stamps, removals)
+            indices = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+        except RuntimeError as exc:   # re-raised unless a Cholesky refusal QR can take
+            indices = rebuild.qr_resolve(self, g, exc)
         self.lm.record_factor_indices(indices)
         for src in self.sources:
             src.record_factor_indices(indices)

@@ -177,6 +177,11 @@ class PointTracks:
             pt.index = int(indices[pos])
         self._pending = []
 
+    def remap_factor_indices(self, remap: dict[int, int]) -> None:
+        """After a smoother rebuild: old -> new factor slots."""
+        for pt in self.tracks.values():
+            pt.index = remap.get(pt.index)
+
     def outlier_removals(self, values: gtsam.Values, g: gtsam.NonlinearFactorGraph, stamps: dict,
                          removals: list[int]) -> list[int]:
         """Ids of points whose reprojection error in their main factor exceeds

@@ -29,6 +29,7 @@ import numpy as np
 from vio.backend import graph
 from factors.robust import RobustKernel
 from vio.backend import viba
+from vio.backend.rebuild import install, rebuilt
 from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
 from vio.backend.viba import History
 from vio.backend.viba_worker import BatchWorker
@@ -106,35 +107,16 @@ def _factor(f, sim: Similarity, lin: gtsam.Values):
 def apply_similarity(est: "Estimator", sim: Similarity) -> None:
     """Rebuild ``est``'s smoother with its state transformed by ``sim`` (module
     docstring); raises RuntimeError if the solver refuses (the caller keeps the old one)."""
-    old = est.smoother
-    vals, lin = est.values, old.getLinearizationPoint()
-    fg = old.getFactors()
-    stamps = {int(k): float(t) for k, t in old.timestamps().items()}
-    g, order = gtsam.NonlinearFactorGraph(), []
-    for j in range(fg.size()):
-        f = fg.at(j)
-        if f is None:
-            continue
-        g.add(_factor(f, sim, lin))
-        order.append(j)
-    new = est._new_smoother()
     rescale = getattr(est.lm, "scale_depths", None)   # inverse depths kept outside Values
     if rescale is not None:
         rescale(1.0 / sim.s)
     try:
-        new.update(g, sim.values(vals), stamps)
+        new, remap, _ = rebuilt(est, sim.values(est.values), lambda f, lin: _factor(f, sim, lin))
     except RuntimeError:
         if rescale is not None:
             rescale(sim.s)
         raise
-    idx = list(new.getISAM2Result().getNewFactorsIndices())
-    remap = dict(zip(order, (int(i) for i in idx)))
-    for tr in est.lm.tracks.values():
-        tr.factor_indices = [remap[i] for i in tr.factor_indices if i in remap]
-    for pt in est.lm.points.tracks.values():
-        pt.index = remap.get(pt.index)
-    est.smoother = new
-    est.values = new.calculateEstimate()
+    install(est, new, remap)
 
 
 class ScaleRefiner:

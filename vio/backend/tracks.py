@@ -92,6 +92,16 @@ class LandmarkManager:
         self._pending = []
         self.points.record_factor_indices(idx)
 
+    def remap_factor_indices(self, remap: dict[int, int]) -> None:
+        """After a smoother rebuild (``vio.backend.rebuild``): old -> new factor slots."""
+        for tr in {id(t): t for t in self._indexed()}.values():
+            tr.factor_indices = [remap[i] for i in tr.factor_indices if i in remap]
+        self.points.remap_factor_indices(remap)
+
+    def _indexed(self):
+        """Every track that may hold factor slots."""
+        return self.tracks.values()
+
     # ----------------------------------------------------------- graph update
     def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
                        g: gtsam.NonlinearFactorGraph, v: gtsam.Values,

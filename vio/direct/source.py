@@ -193,6 +193,11 @@ class PhotometricSource:
             host.factor_index = int(idx[pos])
         self._pending = []
 
+    def remap_factor_indices(self, remap: dict[int, int]) -> None:
+        """After a smoother rebuild (``vio.backend.rebuild``): old -> new factor slots."""
+        for host in self.hosts.values():
+            host.factor_index = remap.get(host.factor_index)
+
     def reset(self) -> None:
         """After a solver restart: forget hosts and keys; the restart keyframe's images
         are kept and its keys inserted at the next keyframe."""

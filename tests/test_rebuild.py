@@ -1,0 +1,140 @@
+"""The QR re-solve after a Cholesky refusal (vio.backend.rebuild): the update that GTSAM's
+Cholesky refuses is solved as a QR smoother would have solved it, every recorded factor
+slot still names the same factor, and Cholesky comes back once the window has moved on."""
+
+from types import SimpleNamespace
+
+import gtsam
+import numpy as np
+import pytest
+
+from vio.backend import rebuild
+
+
+class _Slots:
+    """A factor-slot holder like the landmark manager: names -> smoother slots."""
+
+    def __init__(self) -> None:
+        self.slots: dict[str, int] = {}
+
+    def remap_factor_indices(self, remap: dict[int, int]) -> None:
+        self.slots = {n: remap[i] for n, i in self.slots.items() if i in remap}
+
+
+class _Est(SimpleNamespace):
+    def _new_smoother(self, factorization=None):
+        p = gtsam.ISAM2Params()
+        p.setFactorization(factorization or self.cfg.solver.factorization)
+        return gtsam.IncrementalFixedLagSmoother(10.0, p)
+
+
+def _est(factorization: str) -> _Est:
+    est = _Est(cfg=SimpleNamespace(solver=SimpleNamespace(factorization=factorization)),
+               smoother_factorization=factorization, qr_since_ns=None, qr_resolves=0,
+               lm=_Slots(), sources=[], values=gtsam.Values(), k=0, kf_t={0: 0})
+    est.smoother = est._new_smoother()
+    return est
+
+
+def _prior(key: int, mean, sigmas) -> gtsam.PriorFactorVector:
+    return gtsam.PriorFactorVector(key, np.asarray(mean, float), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float)))
+
+
+def _between(k0: int, k1: int) -> gtsam.BetweenFactorVector:
+    return gtsam.BetweenFactorVector(k0, k1, np.array([1.0, 0.5, -0.2]), gtsam.noiseModel.Isotropic.Sigma(3, 0.1))
+
+
+def _run(est, g, v, stamps, removals=()):
+    """The estimator's update step (``Estimator._update``)."""
+    try:
+        est.smoother.update(g, v, stamps, list(removals))
+        return list(est.smoother.getISAM2Result().getNewFactorsIndices())
+    except RuntimeError as exc:
+        return rebuild.qr_resolve(est, g, exc)
+
+
+def _first(est):
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    g.add(_prior(0, [0, 0, 0], [0.1] * 3))
+    g.add(_prior(1, [1, 1, 1], [10.0] * 3))
+    g.add(_between(0, 1))
+    for k in (0, 1):
+        v.insert(k, np.zeros(3))
+    idx = _run(est, g, v, {0: 0.0, 1: 1.0})
+    est.lm.slots = {"p0": idx[0], "weak": idx[1], "b01": idx[2]}
+
+
+def _ill(key: int) -> gtsam.PriorFactorVector:
+    """A prior whose information spans 1e-5 .. 1e5 in oblique directions: GTSAM's
+    Cholesky refuses it as indeterminate, QR solves it."""
+    Q = gtsam.Rot3.RzRyRx(0.3, -0.5, 0.7).matrix()
+    return gtsam.PriorFactorVector(key, np.array([2, 1.5, -0.4]),
+                                   gtsam.noiseModel.Gaussian.Covariance(Q @ np.diag([1e-5, 1.0, 1e5]) @ Q.T))
+
+
+def _second(est):
+    """Adds a prior on 1 and variable 2 with the ill-conditioned prior; removes the weak
+    prior on 1."""
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    g.add(_prior(1, [1.2, 0.4, 0.1], [0.5] * 3))
+    g.add(_ill(2))
+    v.insert(2, np.zeros(3))
+    est.kf_t[2], est.k = 2, 2
+    idx = _run(est, g, v, {2: 2.0}, [est.lm.slots.pop("weak")])
+    est.lm.slots.update(p1=idx[0], p2=idx[1])
+    est.values = est.smoother.calculateEstimate()
+
+
+def test_cholesky_refuses_this_update():
+    est = _est("CHOLESKY")
+    _first(est)
+    g = gtsam.NonlinearFactorGraph()
+    g.add(_ill(2))
+    v = gtsam.Values()
+    v.insert(2, np.zeros(3))
+    with pytest.raises(RuntimeError, match="Indeterminate"):
+        est.smoother.update(g, v, {2: 2.0}, [])
+
+
+def test_qr_resolve_matches_a_qr_smoother_and_keeps_slots():
+    chol, qr = _est("CHOLESKY"), _est("QR")
+    for est in (chol, qr):
+        _first(est)
+        _second(est)
+    assert chol.qr_resolves == 1 and chol.smoother_factorization == "QR" and chol.qr_since_ns == 2
+    assert qr.qr_resolves == 0
+    for k in (0, 1, 2):
+        np.testing.assert_allclose(chol.values.atVector(k), qr.values.atVector(k), atol=1e-9)
+    fg_c, fg_q = chol.smoother.getFactors(), qr.smoother.getFactors()
+    assert set(chol.lm.slots) == {"p0", "b01", "p1", "p2"}
+    for name, slot in chol.lm.slots.items():   # each recorded slot names the same factor
+        fc, fq = fg_c.at(slot), fg_q.at(qr.lm.slots[name])
+        assert fc is not None and fc.keys() == fq.keys()
+        assert fc.error(chol.values) == pytest.approx(fq.error(qr.values), rel=1e-9, abs=1e-12)
+    assert sum(fg_c.at(j) is not None for j in range(fg_c.size())) == 4   # the removed prior stays removed
+
+
+def test_back_to_cholesky_once_the_window_moved_on():
+    est = _est("CHOLESKY")
+    _first(est)
+    _second(est)
+    rebuild.maybe_back_to_cholesky(est)            # keyframe 2 of the refusal still in the window
+    assert est.smoother_factorization == "QR"
+    est.kf_t = {3: 3}
+    g = gtsam.NonlinearFactorGraph()
+    g.add(_prior(2, [2, 1.5, -0.4], [0.1] * 3))
+    est.smoother.update(g, gtsam.Values(), {}, [est.lm.slots.pop("p2")])
+    est.lm.slots["q2"] = list(est.smoother.getISAM2Result().getNewFactorsIndices())[0]
+    before = est.smoother.calculateEstimate()
+    rebuild.maybe_back_to_cholesky(est)
+    assert est.smoother_factorization == "CHOLESKY" and est.qr_since_ns is None
+    for k in (0, 1, 2):
+        np.testing.assert_allclose(est.values.atVector(k), before.atVector(k), atol=1e-9)
+    fg = est.smoother.getFactors()
+    assert [fg.at(est.lm.slots[n]).keys() for n in ("p0", "b01", "p1", "q2")] == [[0], [0, 1], [1], [2]]
+
+
+def test_not_a_refusal_is_reraised():
+    est = _est("QR")
+    with pytest.raises(RuntimeError, match="boom"):
+        rebuild.qr_resolve(est, gtsam.NonlinearFactorGraph(), RuntimeError("boom"))
