@@ -4,7 +4,8 @@ Built only from GTSAM's C++ factors: ``CombinedImuFactor`` between keyframes,
 ``GenericProjectionFactorCal3_S2`` (Huber, pixel units, ``body_P_sensor = T_b_c``)
 from each keyframe to a triangulated ``Point3`` landmark, ``PriorFactor``s for the
 first state and zero-velocity updates, all inside ``gtsam.IncrementalFixedLagSmoother``
-with the same lag, factorization (Cholesky) and relinearization settings as ours.
+with the same lag, factorization (Cholesky, re-solved with QR when it refuses, as ours)
+and relinearization settings as ours.
 
 Fairness: the keyframes (and their still flags), the initial state, the IMU noise
 (``vio.imu.combined_params``), the midpoint preintegration (``vio.imu.integrate``)
@@ -39,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vio.backend import graph  # noqa: E402
+from vio.backend import graph, smoother  # noqa: E402
 from vio.backend.init import InitialState  # noqa: E402
 from vio.imu import combined_params, integrate  # noqa: E402
 from vio.io.euroc import EurocDataset, load_euroc  # noqa: E402
@@ -102,12 +103,24 @@ class BaselineVIO:
         self.recoveries = 0
         self.n_gated = 0
         self.pim = None
+        self.smoother_factorization = self.home_factorization   # QR after a re-solve, as ours
+        self.qr_since_ns: float | None = None    # in kf_t's unit (s)
+        self.qr_resolves = 0
 
     # ----------------------------------------------------------------- setup
-    def _new_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+    @property
+    def home_factorization(self) -> str:
+        return self.cfg.backend.solver.factorization
+
+    def remap_factor_indices(self, remap: dict[int, int]) -> None:
+        """After a smoother rebuild (``vio.backend.smoother``, as ours)."""
+        for lm in self.lms.values():
+            lm.factors = {k: remap[i] for k, i in lm.factors.items() if i in remap}
+
+    def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
         s = self.cfg.backend.solver
         p = gtsam.ISAM2Params()
-        p.setFactorization(s.factorization)
+        p.setFactorization(factorization or s.factorization)
         p.setRelinearizeThreshold(s.relinearize_threshold)
         p.relinearizeSkip = s.relinearize_skip
         return gtsam.IncrementalFixedLagSmoother(s.lag_s, p)
@@ -115,6 +128,7 @@ class BaselineVIO:
     def initialize(self, state: InitialState, k: int = 0, pose_sigmas: np.ndarray | None = None) -> None:
         """Start (or restart) the window at ``state`` as keyframe ``k``."""
         self.smoother = self._new_smoother()
+        self.smoother_factorization, self.qr_since_ns = self.home_factorization, None
         self.k = k
         t = state.t_ns * 1e-9
         self.kf_t = {k: t}
@@ -151,6 +165,7 @@ class BaselineVIO:
     # ------------------------------------------------------------ keyframes
     def add_keyframe(self, t_ns: int, fr: FeatureFrame | None, still: bool) -> None:
         """Insert keyframe ``k+1`` with the IMU preintegrated since keyframe ``k``."""
+        smoother.maybe_back_to_cholesky(self)
         k0, k1, t = self.k, self.k + 1, t_ns * 1e-9
         pred = self.predict()
         b0 = self.latest()[2]
@@ -270,8 +285,11 @@ class BaselineVIO:
         return p if b.min_depth_m <= min(depths) and max(depths) <= b.max_depth_m else None
 
     def _update(self, g, v, stamps, removals, pending) -> None:
-        self.smoother.update(g, v, stamps, removals)
-        idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+        try:
+            self.smoother.update(g, v, stamps, removals)
+            idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
+        except RuntimeError as exc:   # a Cholesky refusal is re-solved with QR, as ours
+            idx = smoother.qr_resolve(self, g, exc)
         for lm, k, pos in pending:
             lm.factors[k] = int(idx[pos])
         self.values = self.smoother.calculateEstimate()

@@ -291,7 +291,7 @@ def render(res: dict) -> str:
            "Ours: `vio.run.run_dataset` (fixed-lag iSAM2, per-landmark inverse-depth td factors, "
            "Python CustomFactors). Baseline: `benchmarks/baseline_gtsam.py`, GTSAM C++ factors only "
            "(CombinedImuFactor + GenericProjectionFactorCal3_S2 on Point3 landmarks) in "
-           "IncrementalFixedLagSmoother (QR), fed our keyframes, initial state and IMU noise.", ""]
+           "IncrementalFixedLagSmoother (same factorization as ours), fed our keyframes, initial state and IMU noise.", ""]
     acc = res.get("accuracy")
     if acc:
         if any(not is_image(r) for r in acc.get("runs", [])) or not acc.get("runs"):   # incl. variants

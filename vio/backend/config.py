@@ -273,7 +273,7 @@ class SolverConfig:
     ``ISAM2Params``. ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
     Householder QR (real MH_05 mono: main process CPU 6.63 -> 4.68 s, p95 per frame
     111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
-    the update is re-solved with QR (``vio.backend.rebuild``). ``wildfire_threshold``:
+    the update is re-solved with QR (``vio.backend.smoother``). ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
     time offset td (seconds), whose steps are ~1e-4."""
 

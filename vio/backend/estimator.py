@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import gtsam
 import numpy as np
 
-from vio.backend import graph, rebuild
+from vio.backend import graph, smoother
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
@@ -59,7 +59,7 @@ class FactorSource(Protocol):
     returns smoother factor indices to remove; ``record_factor_indices`` receives the
     smoother indices of *all* new factors of the update (the source kept the positions
     ``g.size()`` of its own when adding them); ``remap_factor_indices`` maps them to new
-    slots after a smoother rebuild (``vio.backend.rebuild``). ``reset`` forgets all graph state after
+    slots after a smoother rebuild (``vio.backend.smoother``). ``reset`` forgets all graph state after
     a solver restart. ``key_dims`` maps the key characters it uses to their dimensions
     (for the relinearization thresholds)."""
 
@@ -75,18 +75,6 @@ class FactorSource(Protocol):
     def remap_factor_indices(self, remap: dict[int, int]) -> None: ...
 
     def reset(self) -> None: ...
-
-
-def _threshold_map(general: float, td: float,
-                   extra: dict[str, int] | None = None) -> gtsam.ISAM2ThresholdMap:
-    """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
-    step and would never cross the general threshold."""
-    m = gtsam.ISAM2ThresholdMap()
-    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, **(extra or {})}
-    for ch, dim in dims.items():
-        m.insert((ch, np.full(dim, general)))
-    m.insert(("d", np.array([td])))
-    return m
 
 
 class Estimator:
@@ -124,7 +112,7 @@ class Estimator:
         self.rates = KeyframeRates()
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
-        self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.rebuild)
+        self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.smoother)
         self.qr_since_ns: int | None = None
         self.qr_resolves = 0
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
@@ -133,20 +121,18 @@ class Estimator:
 
     # ------------------------------------------------------------------ setup
     def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
-        s = self.cfg.solver
-        p = gtsam.ISAM2Params()
-        p.setFactorization(factorization or s.factorization)
         extra = {ch: d for src in self.sources for ch, d in src.key_dims.items()}
-        p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold,
-                                                 extra))
-        p.relinearizeSkip = s.relinearize_skip
-        p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
-        # iSAM2 skips updating variables whose change is below the wildfire threshold
-        # (default 1e-3): td (seconds) then never moves; see SolverConfig.wildfire_threshold
-        gn = gtsam.ISAM2GaussNewtonParams()
-        gn.setWildfireThreshold(s.wildfire_threshold)
-        p.setOptimizationParams(gn)
-        return gtsam.IncrementalFixedLagSmoother(s.lag_s, p)
+        return smoother.make(self.cfg.solver, extra, factorization)
+
+    @property
+    def home_factorization(self) -> str:
+        return self.cfg.solver.factorization
+
+    def remap_factor_indices(self, remap: dict[int, int]) -> None:
+        """After a smoother rebuild (``vio.backend.smoother``): old -> new factor slots."""
+        self.lm.remap_factor_indices(remap)
+        for src in self.sources:
+            src.remap_factor_indices(remap)
 
     def initialize(self, state: InitialState, T_b_c: gtsam.Pose3 | None = None,
                    td_s: float | None = None) -> None:
@@ -230,7 +216,7 @@ class Estimator:
         ``gyro``: the raw gyro reading (rad/s, body) at ``t_ns``, for predicted
         feature velocities (see ``vio.imu.KeyframeRates``);
         ``frame``: the pipeline's packet, passed to ``sources``."""
-        rebuild.maybe_back_to_cholesky(self)    # before any factor slot is read
+        smoother.maybe_back_to_cholesky(self)    # before any factor slot is read
         k0, k1 = self.k, self.k + 1
         div0 = self.divergences
         pred = self.predict()
@@ -290,7 +276,7 @@ class Estimator:
             self.smoother.update(g, v, stamps, removals)
             indices = list(self.smoother.getISAM2Result().getNewFactorsIndices())
         except RuntimeError as exc:   # re-raised unless a Cholesky refusal QR can take
-            indices = rebuild.qr_resolve(self, g, exc)
+            indices = smoother.qr_resolve(self, g, exc)
         self.lm.record_factor_indices(indices)
         for src in self.sources:
             src.record_factor_indices(indices)

@@ -29,7 +29,7 @@ import numpy as np
 from vio.backend import graph
 from factors.robust import RobustKernel
 from vio.backend import viba
-from vio.backend.rebuild import install, rebuilt
+from vio.backend.smoother import install, rebuilt
 from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
 from vio.backend.viba import History
 from vio.backend.viba_worker import BatchWorker

@@ -93,7 +93,7 @@ class LandmarkManager:
         self.points.record_factor_indices(idx)
 
     def remap_factor_indices(self, remap: dict[int, int]) -> None:
-        """After a smoother rebuild (``vio.backend.rebuild``): old -> new factor slots."""
+        """After a smoother rebuild (``vio.backend.smoother``): old -> new factor slots."""
         for tr in {id(t): t for t in self._indexed()}.values():
             tr.factor_indices = [remap[i] for i in tr.factor_indices if i in remap]
         self.points.remap_factor_indices(remap)

@@ -194,7 +194,7 @@ class PhotometricSource:
         self._pending = []
 
     def remap_factor_indices(self, remap: dict[int, int]) -> None:
-        """After a smoother rebuild (``vio.backend.rebuild``): old -> new factor slots."""
+        """After a smoother rebuild (``vio.backend.smoother``): old -> new factor slots."""
         for host in self.hosts.values():
             host.factor_index = remap.get(host.factor_index)
 

@@ -1,5 +1,5 @@
-"""Rebuilding the fixed-lag smoother from its own factors, and the QR re-solve after a
-Cholesky refusal.
+"""The fixed-lag smoother: its construction from ``SolverConfig``, its rebuild from its own
+factors, and the QR re-solve after a Cholesky refusal.
 
 The gtsam ``Values`` is the only state copy, so a rebuild takes the old smoother's
 factors (marginal ``LinearContainerFactor``s included), linearization point and
@@ -16,6 +16,12 @@ factors and values in (GTSAM ``ISAM2::update`` adds them before eliminating), so
 :func:`qr_resolve` rebuilds the smoother with QR from that graph instead of restarting
 the window (a restart loses the window's information), and :func:`maybe_back_to_cholesky`
 rebuilds with Cholesky once the keyframes present at the refusal have left.
+
+The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
+baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
+``home_factorization`` (the configured one), ``smoother_factorization`` (the current
+one), ``qr_since_ns``, ``qr_resolves``, ``kf_t`` (keyframe -> time), ``k`` and
+``remap_factor_indices(remap)``.
 """
 
 from __future__ import annotations
@@ -24,11 +30,43 @@ import logging
 from typing import TYPE_CHECKING, Callable
 
 import gtsam
+import numpy as np
+
+from vio.backend.config import SolverConfig
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
 
 log = logging.getLogger(__name__)
+
+
+def _threshold_map(general: float, td: float,
+                   extra: dict[str, int] | None = None) -> gtsam.ISAM2ThresholdMap:
+    """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
+    step and would never cross the general threshold."""
+    m = gtsam.ISAM2ThresholdMap()
+    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, **(extra or {})}
+    for ch, dim in dims.items():
+        m.insert((ch, np.full(dim, general)))
+    m.insert(("d", np.array([td])))
+    return m
+
+
+def make(s: SolverConfig, extra_dims: dict[str, int] | None = None,
+         factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
+    """A fresh smoother as ``s`` says (``factorization`` overrides it); ``extra_dims``:
+    key character -> dimension of the factor sources' variables (relinearization thresholds)."""
+    p = gtsam.ISAM2Params()
+    p.setFactorization(factorization or s.factorization)
+    p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold, extra_dims))
+    p.relinearizeSkip = s.relinearize_skip
+    p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
+    # iSAM2 skips updating variables whose change is below the wildfire threshold
+    # (default 1e-3): td (seconds) then never moves; see SolverConfig.wildfire_threshold
+    gn = gtsam.ISAM2GaussNewtonParams()
+    gn.setWildfireThreshold(s.wildfire_threshold)
+    p.setOptimizationParams(gn)
+    return gtsam.IncrementalFixedLagSmoother(s.lag_s, p)
 
 
 def rebuilt(est: "Estimator", values: gtsam.Values | None = None,
@@ -62,9 +100,7 @@ def install(est: "Estimator", new: gtsam.IncrementalFixedLagSmoother, remap: dic
             factorization: str | None = None) -> None:
     """Make ``new`` (factorized as ``factorization``, default unchanged) the estimator's
     smoother; remap every recorded factor slot."""
-    est.lm.remap_factor_indices(remap)
-    for src in est.sources:
-        src.remap_factor_indices(remap)
+    est.remap_factor_indices(remap)
     est.smoother = new
     est.smoother_factorization = factorization or est.smoother_factorization
     est.values = new.calculateEstimate()
@@ -103,15 +139,15 @@ def maybe_back_to_cholesky(est: "Estimator") -> None:
     """After a QR re-solve: once every keyframe of that moment has left the window,
     rebuild with Cholesky (kept on QR if Cholesky refuses)."""
     t0 = est.qr_since_ns
-    if est.smoother_factorization == est.cfg.solver.factorization or t0 is None:
+    if est.smoother_factorization == est.home_factorization or t0 is None:
         return
     if min(est.kf_t.values(), default=t0) <= t0:
         return
     try:
-        new, remap, _ = rebuilt(est, factorization=est.cfg.solver.factorization)
+        new, remap, _ = rebuilt(est, factorization=est.home_factorization)
     except RuntimeError:
         est.qr_since_ns = est.kf_t.get(est.k)
         return
-    install(est, new, remap, est.cfg.solver.factorization)
+    install(est, new, remap, est.home_factorization)
     est.qr_since_ns = None
     log.info("keyframe %d: back to %s after the QR re-solve", est.k, est.smoother_factorization)

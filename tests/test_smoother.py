@@ -1,4 +1,4 @@
-"""The QR re-solve after a Cholesky refusal (vio.backend.rebuild): the update that GTSAM's
+"""The QR re-solve after a Cholesky refusal (vio.backend.smoother): the update that GTSAM's
 Cholesky refuses is solved as a QR smoother would have solved it, every recorded factor
 slot still names the same factor, and Cholesky comes back once the window has moved on."""
 
@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from vio.backend import rebuild
+from vio.backend import smoother
 
 
 class _Slots:
@@ -22,6 +22,13 @@ class _Slots:
 
 
 class _Est(SimpleNamespace):
+    @property
+    def home_factorization(self):
+        return self.cfg.solver.factorization
+
+    def remap_factor_indices(self, remap):
+        self.lm.remap_factor_indices(remap)
+
     def _new_smoother(self, factorization=None):
         p = gtsam.ISAM2Params()
         p.setFactorization(factorization or self.cfg.solver.factorization)
@@ -31,7 +38,7 @@ class _Est(SimpleNamespace):
 def _est(factorization: str) -> _Est:
     est = _Est(cfg=SimpleNamespace(solver=SimpleNamespace(factorization=factorization)),
                smoother_factorization=factorization, qr_since_ns=None, qr_resolves=0,
-               lm=_Slots(), sources=[], values=gtsam.Values(), k=0, kf_t={0: 0})
+               lm=_Slots(), values=gtsam.Values(), k=0, kf_t={0: 0})
     est.smoother = est._new_smoother()
     return est
 
@@ -50,7 +57,7 @@ def _run(est, g, v, stamps, removals=()):
         est.smoother.update(g, v, stamps, list(removals))
         return list(est.smoother.getISAM2Result().getNewFactorsIndices())
     except RuntimeError as exc:
-        return rebuild.qr_resolve(est, g, exc)
+        return smoother.qr_resolve(est, g, exc)
 
 
 def _first(est):
@@ -118,7 +125,7 @@ def test_back_to_cholesky_once_the_window_moved_on():
     est = _est("CHOLESKY")
     _first(est)
     _second(est)
-    rebuild.maybe_back_to_cholesky(est)            # keyframe 2 of the refusal still in the window
+    smoother.maybe_back_to_cholesky(est)            # keyframe 2 of the refusal still in the window
     assert est.smoother_factorization == "QR"
     est.kf_t = {3: 3}
     g = gtsam.NonlinearFactorGraph()
@@ -126,7 +133,7 @@ def test_back_to_cholesky_once_the_window_moved_on():
     est.smoother.update(g, gtsam.Values(), {}, [est.lm.slots.pop("p2")])
     est.lm.slots["q2"] = list(est.smoother.getISAM2Result().getNewFactorsIndices())[0]
     before = est.smoother.calculateEstimate()
-    rebuild.maybe_back_to_cholesky(est)
+    smoother.maybe_back_to_cholesky(est)
     assert est.smoother_factorization == "CHOLESKY" and est.qr_since_ns is None
     for k in (0, 1, 2):
         np.testing.assert_allclose(est.values.atVector(k), before.atVector(k), atol=1e-9)
@@ -137,4 +144,4 @@ def test_back_to_cholesky_once_the_window_moved_on():
 def test_not_a_refusal_is_reraised():
     est = _est("QR")
     with pytest.raises(RuntimeError, match="boom"):
-        rebuild.qr_resolve(est, gtsam.NonlinearFactorGraph(), RuntimeError("boom"))
+        smoother.qr_resolve(est, gtsam.NonlinearFactorGraph(), RuntimeError("boom"))
