@@ -41,6 +41,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent)]
 
+from vio.threads import one_blas_thread  # noqa: E402
+
+one_blas_thread()   # before numpy loads, as `vio run` (vio.threads)
+
 # (stage, [(file suffix, function name, "cum" | "tot")]); a stage's seconds are the sum
 # of its entries; entries nested in another stage's entry are subtracted there (below)
 STAGES = [

@@ -34,6 +34,7 @@ ROOT = HERE.parent
 sys.path[:0] = [str(ROOT), str(HERE)]
 
 import datasets as ds  # noqa: E402
+from vio.threads import one_blas_thread  # noqa: E402
 
 SECTIONS = ("accuracy", "micro", "scaling", "memory")
 # modes without a GTSAM-native baseline, and why
@@ -142,7 +143,8 @@ def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
         cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(job)]
         load0 = os.getloadavg()[0]
         try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
+                                  env=one_blas_thread(dict(os.environ)))   # as `vio run`
         except subprocess.TimeoutExpired:
             return {"error": f"timeout after {timeout_s:.0f} s"}
         if proc.returncode != 0 or not Path(job["result"]).exists():

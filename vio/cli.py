@@ -11,7 +11,11 @@ import logging
 import sys
 from pathlib import Path
 
-from vio.errors import ConfigError, DataError
+from vio.threads import one_blas_thread
+
+one_blas_thread()   # before numpy loads: one BLAS thread per process (vio.threads)
+
+from vio.errors import ConfigError, DataError  # noqa: E402
 
 
 def _add_run(sub) -> None:

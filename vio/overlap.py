@@ -29,6 +29,8 @@ import traceback
 from collections import deque
 from typing import IO, Any, Callable, Iterable, Iterator
 
+from vio.threads import one_blas_thread
+
 try:
     import fcntl
 except ImportError:  # pragma: no cover - Windows
@@ -69,7 +71,7 @@ def _worker_process() -> subprocess.Popen:
     in (two replies read at once left the second one unseen: ``LivePipeline.close``
     then waited forever, and ``overlapped`` would time out on its last result)."""
     proc = subprocess.Popen([sys.executable, "-m", "vio.overlap"], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, bufsize=0)
+                            stdout=subprocess.PIPE, bufsize=0, env=one_blas_thread(dict(os.environ)))
     _widen(proc.stdout)
     return proc
 
