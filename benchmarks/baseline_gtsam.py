@@ -104,7 +104,7 @@ class BaselineVIO:
         self.n_gated = 0
         self.pim = None
         self.smoother_factorization = self.home_factorization   # QR after a re-solve, as ours
-        self.qr_since_ns: float | None = None    # in kf_t's unit (s)
+        self.qr_since: float | None = None    # in kf_t's unit (s)
         self.qr_resolves = 0
 
     # ----------------------------------------------------------------- setup
@@ -128,7 +128,7 @@ class BaselineVIO:
     def initialize(self, state: InitialState, k: int = 0, pose_sigmas: np.ndarray | None = None) -> None:
         """Start (or restart) the window at ``state`` as keyframe ``k``."""
         self.smoother = self._new_smoother()
-        self.smoother_factorization, self.qr_since_ns = self.home_factorization, None
+        self.smoother_factorization, self.qr_since = self.home_factorization, None
         self.k = k
         t = state.t_ns * 1e-9
         self.kf_t = {k: t}

@@ -37,14 +37,15 @@ class _Est(SimpleNamespace):
 
 def _est(factorization: str) -> _Est:
     est = _Est(cfg=SimpleNamespace(solver=SimpleNamespace(factorization=factorization)),
-               smoother_factorization=factorization, qr_since_ns=None, qr_resolves=0,
+               smoother_factorization=factorization, qr_since=None, qr_resolves=0,
                lm=_Slots(), values=gtsam.Values(), k=0, kf_t={0: 0})
     est.smoother = est._new_smoother()
     return est
 
 
 def _prior(key: int, mean, sigmas) -> gtsam.PriorFactorVector:
-    return gtsam.PriorFactorVector(key, np.asarray(mean, float), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float)))
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float))
+    return gtsam.PriorFactorVector(key, np.asarray(mean, float), noise)
 
 
 def _between(k0: int, k1: int) -> gtsam.BetweenFactorVector:
@@ -108,7 +109,7 @@ def test_qr_resolve_matches_a_qr_smoother_and_keeps_slots():
     for est in (chol, qr):
         _first(est)
         _second(est)
-    assert chol.qr_resolves == 1 and chol.smoother_factorization == "QR" and chol.qr_since_ns == 2
+    assert chol.qr_resolves == 1 and chol.smoother_factorization == "QR" and chol.qr_since == 2
     assert qr.qr_resolves == 0
     for k in (0, 1, 2):
         np.testing.assert_allclose(chol.values.atVector(k), qr.values.atVector(k), atol=1e-9)
@@ -134,7 +135,7 @@ def test_back_to_cholesky_once_the_window_moved_on():
     est.lm.slots["q2"] = list(est.smoother.getISAM2Result().getNewFactorsIndices())[0]
     before = est.smoother.calculateEstimate()
     smoother.maybe_back_to_cholesky(est)
-    assert est.smoother_factorization == "CHOLESKY" and est.qr_since_ns is None
+    assert est.smoother_factorization == "CHOLESKY" and est.qr_since is None
     for k in (0, 1, 2):
         np.testing.assert_allclose(est.values.atVector(k), before.atVector(k), atol=1e-9)
     fg = est.smoother.getFactors()

@@ -113,7 +113,7 @@ class Estimator:
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.smoother)
-        self.qr_since_ns: int | None = None
+        self.qr_since: int | None = None
         self.qr_resolves = 0
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
@@ -149,7 +149,7 @@ class Estimator:
         (``init``: the prior sigmas, default ``cfg.init``; ``priors``: the state's priors
         instead)."""
         self.smoother = self._new_smoother()
-        self.smoother_factorization, self.qr_since_ns = self.cfg.solver.factorization, None
+        self.smoother_factorization, self.qr_since = self.cfg.solver.factorization, None
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)

@@ -20,7 +20,7 @@ rebuilds with Cholesky once the keyframes present at the refusal have left.
 The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
 baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
 ``home_factorization`` (the configured one), ``smoother_factorization`` (the current
-one), ``qr_since_ns``, ``qr_resolves``, ``kf_t`` (keyframe -> time), ``k`` and
+one), ``qr_since``, ``qr_resolves``, ``kf_t`` (keyframe -> time), ``k`` and
 ``remap_factor_indices(remap)``.
 """
 
@@ -75,25 +75,24 @@ def rebuilt(est: "Estimator", values: gtsam.Values | None = None,
     """A new smoother holding ``est.smoother``'s non-null factors (each through
     ``convert(f, lin)`` if given; ``lin`` the old linearization point) at ``values``
     (default ``lin``) with the old timestamps, factorized as ``factorization`` (default:
-    the current smoother's). Returns (smoother, {old slot: new slot},
-    [(old slot, factor)] as taken from the old smoother). Raises RuntimeError if the solver refuses; ``est``
-    is left untouched."""
+    the current smoother's). Returns (smoother, {old slot: new slot}, [(old slot, factor)]
+    as taken from the old smoother). Raises RuntimeError if the solver refuses; ``est`` is
+    left untouched."""
     old = est.smoother
     lin = old.getLinearizationPoint()
     fg = old.getFactors()
     stamps = {int(k): float(t) for k, t in old.timestamps().items()}
-    g, order, kept = gtsam.NonlinearFactorGraph(), [], []
+    g, kept = gtsam.NonlinearFactorGraph(), []
     for j in range(fg.size()):
         f = fg.at(j)
         if f is None:
             continue
         kept.append((j, f))
         g.add(f if convert is None else convert(f, lin))
-        order.append(j)
     new = est._new_smoother(factorization or est.smoother_factorization)
     new.update(g, lin if values is None else values, stamps)
     idx = list(new.getISAM2Result().getNewFactorsIndices())
-    return new, dict(zip(order, (int(i) for i in idx))), kept
+    return new, {j: int(i) for (j, _), i in zip(kept, idx)}, kept
 
 
 def install(est: "Estimator", new: gtsam.IncrementalFixedLagSmoother, remap: dict[int, int],
@@ -127,7 +126,7 @@ def qr_resolve(est: "Estimator", g: gtsam.NonlinearFactorGraph, exc: RuntimeErro
     if min(slots, default=0) < 0:
         raise exc
     install(est, new, remap, "QR")
-    est.qr_since_ns = est.kf_t.get(est.k)
+    est.qr_since = est.kf_t.get(est.k)
     est.qr_resolves += 1
     var = str(exc).split("(Symbol: ")[-1].split(")")[0] if "(Symbol: " in str(exc) else "?"
     log.warning("keyframe %d: Cholesky refused the update (near variable %s); re-solved with QR "
@@ -138,7 +137,7 @@ def qr_resolve(est: "Estimator", g: gtsam.NonlinearFactorGraph, exc: RuntimeErro
 def maybe_back_to_cholesky(est: "Estimator") -> None:
     """After a QR re-solve: once every keyframe of that moment has left the window,
     rebuild with Cholesky (kept on QR if Cholesky refuses)."""
-    t0 = est.qr_since_ns
+    t0 = est.qr_since
     if est.smoother_factorization == est.home_factorization or t0 is None:
         return
     if min(est.kf_t.values(), default=t0) <= t0:
@@ -146,8 +145,8 @@ def maybe_back_to_cholesky(est: "Estimator") -> None:
     try:
         new, remap, _ = rebuilt(est, factorization=est.home_factorization)
     except RuntimeError:
-        est.qr_since_ns = est.kf_t.get(est.k)
+        est.qr_since = est.kf_t.get(est.k)
         return
     install(est, new, remap, est.home_factorization)
-    est.qr_since_ns = None
+    est.qr_since = None
     log.info("keyframe %d: back to %s after the QR re-solve", est.k, est.smoother_factorization)
