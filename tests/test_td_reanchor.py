@@ -25,10 +25,11 @@ def _run(root, **calib):
     from vio.config import from_dict
     from vio.evaluation import evaluate
     from vio.io.euroc import load_euroc
-    from vio.run import MODE_DEFAULTS, PipelineConfig, _merged, run_dataset
+    from vio.modes import MODE_DEFAULTS, merged
+    from vio.run import PipelineConfig, run_dataset
     data = load_euroc(root)
     over = {"backend": {"calib": {"td_feedback_after_s": 2.0, **calib}}}
-    cfg = from_dict(PipelineConfig, _merged(MODE_DEFAULTS.get("features", {}), over))
+    cfg = from_dict(PipelineConfig, merged(MODE_DEFAULTS.get("features", {}), over))
     res = run_dataset(data, cfg, mode="features")
     return res, evaluate(*res.arrays(), data.groundtruth).ate_rmse
 

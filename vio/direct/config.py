@@ -168,7 +168,7 @@ class PointsConfig:
     prediction as the keyframe's initial guess when it is ``ok`` and within
     ``track_gate_m`` / ``track_gate_rad`` of the prediction. The backend settings these
     modes need (iSAM2 relinearization, direct mode's keyframe parallax) are mode
-    defaults in ``vio.run.MODE_DEFAULTS``, so a YAML file overrides them.
+    defaults in ``vio.modes.MODE_DEFAULTS``, so a YAML file overrides them.
     """
 
     max_points: int = 150

@@ -22,7 +22,7 @@ returns the per-packet stage (``DirectStage``) that ``run_dataset`` applies befo
   image drop out, so a view change also triggers a keyframe). These frames carry no
   measurement: nothing in them reaches the graph.
 
-The photometric modes' solver defaults (``vio.run.MODE_DEFAULTS``; a YAML file
+The photometric modes' solver defaults (``vio.modes.MODE_DEFAULTS``; a YAML file
 overrides them): relinearization threshold 0.005, checked every 10th update as in the
 other modes. With per-point factors, every 10th update left the photometric factors at
 stale linearization points and the window diverged within 1 s on a render; the per-host

@@ -1,0 +1,70 @@
+"""Per-mode defaults of ``vio run --mode`` (features, stereo, mono, direct, hybrid), laid
+over the dataclass defaults by ``vio.run.default_config`` / ``load_config``; a YAML file
+overrides them. Each entry's comment gives the measurement that set it.
+"""
+
+from __future__ import annotations
+
+# Image modes see ~150 KLT tracks at the camera rate (feature-track datasets ~20-40): keyframes at
+# most every 0.12 s (every third frame at 20 Hz) and 80 landmarks in the window keep stereo above
+# 1.5x real time at 752x480 on two cores with ATE ~1 cm (benchmarks/bench_image_modes.py).
+MODE_DEFAULTS: dict[str, dict] = {
+    mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
+    for mode in ("mono", "stereo", "hybrid")
+}
+# photometric modes: relinearization checked every 10th update as in the other modes,
+# threshold 0.005 (see vio.direct.mode); direct at every update measured the same ATE
+# (real MH_01 5.1 mm, from frame 100 5.3 / 5.4 mm, renders seed 3/14/21 2.5/6.2/8.4 mm)
+# for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8 mm, renders 7.2/2.7 -> 7.1/2.7 mm
+_PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005}
+MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
+# stereo and hybrid: landmark inverse depths eliminated inside per-anchor factors
+# (vio.backend.bundles). Stereo real MH_01: frame p95 / max 78 / 104 -> 41 / 53 ms, ATE 6.3
+# -> 6.2 mm (22 stretches within 0.3 mm, 9 renders -1.4..+1.4 mm); hybrid 5.9 -> 6.0 mm, ~1 s
+# less CPU. Mono keeps variables (real MH_05 from frames 0-150: mean 0.127 -> 0.178 m)
+for _mode in ("stereo", "hybrid"):
+    MODE_DEFAULTS[_mode]["backend"]["vision"]["eliminate_depth"] = True
+# hybrid: 100 photometric points per host instead of direct's 150 (the KLT landmarks hold
+# the geometry too): real MH_01 6.0 -> 6.1 mm, renders seed 14/21 7.2/2.6 -> 6.8/3.1 mm
+# (stereo 6.6 / 11.7 / 13.3 mm), wall 15.3 -> 13.9 s for 15.9 s of data on MH_01
+MODE_DEFAULTS["hybrid"]["direct"] = {"points": {"max_points": 100}}
+# hybrid: photometric noise sigma_I 16 instead of 4 (the renders' residual level; real
+# images' TrackFrame residual RMS is ~8, pattern pixels are correlated, and next to the
+# KLT landmarks the photometric term was over-weighted). ATE 4 -> 16 (12 / 24 between /
+# beyond): real MH_01 5.7 -> 5.0 mm (stereo 6.3); stretches from frames 20-220 5.5-6.6
+# -> 4.5-5.2 mm (stereo 4.6-7.4; from 180 / 200 / 220: 5.2 / 4.9 / 5.2 vs 5.1 / 4.6 / 4.9);
+# renders seeds 14 / 21 / 5 / 8 6.8 / 3.7 / 3.9 / 3.1 -> 5.9 / 2.2 / 3.4 / 2.4 mm
+MODE_DEFAULTS["hybrid"]["direct"]["points"]["sigma_I"] = 16.0
+# hybrid: 40 KLT landmarks in the window instead of 80 (the photometric points carry most
+# of the geometry; on 2 cores hybrid is CPU-bound, 24-25 s of CPU for 20 s of data):
+# `vio run` wall (start-up included) / ATE, 80 -> 40: real MH_01 13.2 -> 11.7 s, 5.7 -> 6.0 mm;
+# MH_01 from frame 100 9.7 -> 9.1 s, 6.2 -> 6.5 mm; renders seed 14 14.0 -> 13.0 s, 6.8 ->
+# 6.8 mm; seed 21 13.3 -> 12.6 s, 3.1 -> 3.2 mm; seed 5 (unseen) 13.8 -> 12.7 s, 4.0 -> 4.6 mm
+# (stereo 6.6 / 6.7 / 11.7 / 13.3 / 18.8 mm); 30 gave no further gain (the KLT worker's floor)
+MODE_DEFAULTS["hybrid"]["backend"]["vision"]["max_landmarks"] = 40
+# hybrid: the KLT worker tracks 120 features instead of 150 (its LK and stereo matching
+# scale with the count; the backend keeps 40 of them): `vio run` wall / ATE, 150 -> 120:
+# real MH_01 11.2 -> 10.9 s, 6.0 -> 5.8 mm; from frame 100 6.5 -> 6.2 mm; renders seed 14
+# 12.9 -> 12.5 s, 6.8 -> 6.8 mm; seed 21 4.4 -> 3.7 mm; seeds 5 / 8 (unseen) 4.5 / 5.8 ->
+# 3.9 / 3.1 mm. 100 and 75 save 0.3-0.8 s more but give 6.9 / 6.5 mm on real MH_01
+# (stereo 6.3)
+MODE_DEFAULTS["hybrid"]["frontend"] = {"max_features": 120}
+# features: triangulated tracks become world points (vio.backend.point_tracks): the anchored
+# inverse depths left generated mid-flight excerpts 0.5-2% short (bench_midflight MH_04@40
+# 0.378 -> 0.235%, MH_05@40 0.312 -> 0.165%; unseen starts MH_05@55 0.635 -> 0.188%, MH_03@80
+# 0.162 -> 0.103%); real V1_01 0.0267 -> 0.0265 m. Mono keeps the anchored inverse depths:
+# real MH_05 starts at frames 0-150 gave a mean 0.127 (anchor) / 0.135 m (points), chaotic
+MODE_DEFAULTS["features"] = {"backend": {"vision": {"reanchor": "point"}}}
+# direct: no factor of the photometric points involves td (it is unobservable there), so
+# it is held at the sync layer's value (``--td``) instead of being reported as estimated;
+# keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
+MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}, "solver": dict(_PHOTOMETRIC_SOLVER),
+                                       "keyframe": {"min_parallax_px": 40.0}}}
+
+
+def merged(base: dict, over: dict) -> dict:
+    """``over`` laid onto ``base`` key by key (nested mappings merged, not replaced)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
