@@ -62,7 +62,7 @@ class PointTracks:
         self._table = None     # the owner's motion table of the current update (callable)
 
     def begin_update(self, table) -> None:
-        """The motion table (``LandmarkManager._motion_table``) for this update's velocities."""
+        """The motion table (``vio.backend.motion.motion_table``) for this update's velocities."""
         self._table = table
 
     def usable(self) -> bool:

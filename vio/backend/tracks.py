@@ -20,6 +20,7 @@ import numpy as np
 from vio.backend import graph
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
+from vio.backend.motion import motion_table
 from vio.backend.td_velocity import predicted_velocities
 from vio.backend.track_factor import build_track_factor
 from vio.io.types import FeatureFrame
@@ -282,35 +283,10 @@ class LandmarkManager:
         return vel, (rvel if self.est.T_c0_c1 is not None else None)
 
     def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
-        """Per window keyframe f: ``R_w_c`` (K, 3, 3), ``t_w_c`` (K, 3), and the camera's
-        angular / linear velocity in the camera frame (K, 3) from the bias-corrected
-        gyro and the estimated velocity, zero at keyframes flagged still (their images
-        carry no timing information; on the ground with motors running the gyro's vibration
-        read as motion let td wander 0 -> 7.8 ms on MH_04 before take-off); ``pos`` maps f to
-        its row. Cached per update."""
-        if self._motion_cache:
-            return self._motion_cache["table"]
-        vals, est = self.est.values, self.est
-        T_b_c = vals.atPose3(graph.EXTRINSIC)
-        R_c_b = T_b_c.rotation().matrix().T
-        frames = sorted(est.kf_t)
-        td = float(vals.atVector(graph.TD)[0])
-        R, t, w, v = [], [], [], []
-        for f in frames:
-            T_w_b = self._pose(f, k, pred)
-            v_w = pred.velocity() if f == k else vals.atVector(graph.V(f))
-            b = vals.atConstantBias(graph.B(k - 1 if f == k else f))
-            w_b = (est.rates.rate(f, td) if f in est.rates else np.zeros(3)) - b.gyroscope()
-            v_b = T_w_b.rotation().unrotate(v_w) + np.cross(w_b, T_b_c.translation())
-            if f in est.still_kf:
-                w_b, v_b = np.zeros(3), np.zeros(3)
-            T_w_c = T_w_b.compose(T_b_c)
-            R.append(T_w_c.rotation().matrix()), t.append(T_w_c.translation())
-            w.append(R_c_b @ w_b), v.append(R_c_b @ v_b)
-        table = ({f: i for i, f in enumerate(frames)}, np.array(R), np.array(t), np.array(w),
-                 np.array(v))
-        self._motion_cache["table"] = table
-        return table
+        """``vio.backend.td_velocity.motion_table`` of this update (cached per update)."""
+        if not self._motion_cache:
+            self._motion_cache["table"] = motion_table(self.est, k, pred, lambda f: self._pose(f, k, pred))
+        return self._motion_cache["table"]
 
     def _pose(self, f: int, k: int, pred: gtsam.NavState) -> gtsam.Pose3:
         """``T_w_b`` of keyframe f: the prediction for the new keyframe k, else the
