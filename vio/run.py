@@ -37,6 +37,8 @@ class RunResult:
     wall_s: float = 0.0
     data_s: float = 0.0
     recoveries: int = 0
+    qr_resolves: int = 0
+    """Updates GTSAM's Cholesky refused and QR re-solved (``vio.backend.smoother``)."""
     restarts: int = 0
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
@@ -214,6 +216,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     if not cfg.live:   # the live backend's counters stay in its process
         res.init = pipe.init_info
         res.restarts = pipe.est.divergences
+        res.qr_resolves = pipe.est.qr_resolves
         res.imu_gaps = len(pipe.imu_gaps)
         res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
         res.imu_dropped = pipe.imu_dropped
@@ -244,7 +247,8 @@ def _loop(it: Iterator[FramePacket], stage: Callable | None, pipe, res: RunResul
 def summary(res: RunResult, data: EurocDataset) -> list[str]:
     """Human-readable summary lines (ATE when ground truth is present)."""
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
-             f"{res.keyframes} keyframes, {res.recoveries} solver recoveries",
+             f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"
+             + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else ""),
              f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"]
     if res.init is None:
