@@ -42,6 +42,13 @@ class ImageStage:
         self._T_b_c = cam0.T_b_c.matrix()
         self._first = True
 
+    def load(self, pkt: FramePacket) -> FramePacket:
+        """``pkt`` with its images decoded (``vio.overlap``'s worker runs this a packet
+        ahead, in a thread, while the previous packet is tracked)."""
+        if pkt.images or not pkt.image_files:
+            return pkt
+        return dataclasses.replace(pkt, images=tuple(read_image(p) for p in pkt.image_files[:2 if self.stereo else 1]))
+
     def __call__(self, pkt: FramePacket) -> FramePacket:
         imgs = pkt.images or tuple(read_image(p) for p in pkt.image_files[:2 if self.stereo else 1])
         if not imgs:
@@ -53,4 +60,5 @@ class ImageStage:
         if self.stereo:
             fr = dataclasses.replace(fr, right_uv=np.asarray(tf.right_uv, float).copy(),
                                      right_velocity=np.asarray(tf.right_velocity, float).copy())
-        return dataclasses.replace(pkt, features=fr)
+        # images decoded from files (``load``) stay here: a pair is ~0.7 MB to send back
+        return dataclasses.replace(pkt, features=fr, images=() if pkt.image_files else pkt.images)
