@@ -36,3 +36,24 @@ def test_worker_error_after_it_exits_is_reported_not_a_broken_pipe():
             got.append(x)
             time.sleep(0.5)   # the worker meanwhile answers packet 1 with its error and exits
     assert got == [0]
+
+
+class _Unpicklable:
+    """Pickles fine in the parent, fails to unpickle in the worker."""
+
+    index = 1
+
+    def __reduce__(self):
+        return (int, ("corrupt packet stream",))   # unpickling raises ValueError
+
+
+def test_broken_packet_stream_is_reported_not_a_hang():
+    """The worker's reader thread (which receives packets and decodes images ahead) must
+    pass a failure to read a packet on to the main thread, which reports it: a silently
+    dead reader left the parent waiting out its whole timeout."""
+    import pytest
+    pkts = [SimpleNamespace(index=0), _Unpicklable(), SimpleNamespace(index=2)]
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="corrupt packet stream"):
+        list(overlapped(operator.attrgetter, ("index",), pkts, depth=4, timeout_s=30.0))
+    assert time.perf_counter() - t0 < 20.0

@@ -115,6 +115,9 @@ def _reader(inp: IO[bytes], load: Callable[[Any], Any] | None, out: "queue.Queue
             pkt = _recv(inp)
         except EOFError:
             pkt = None
+        except BaseException as exc:  # noqa: BLE001 - a broken stream: reported, then stop
+            out.put((None, exc))
+            return
         if pkt is None:
             out.put(None)
             return

@@ -47,10 +47,11 @@ class ImageStage:
         ahead, in a thread, while the previous packet is tracked)."""
         if pkt.images or not pkt.image_files:
             return pkt
-        return dataclasses.replace(pkt, images=tuple(read_image(p) for p in pkt.image_files[:2 if self.stereo else 1]))
+        files = pkt.image_files[:2 if self.stereo else 1]
+        return dataclasses.replace(pkt, images=tuple(read_image(p) for p in files))
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
-        imgs = pkt.images or tuple(read_image(p) for p in pkt.image_files[:2 if self.stereo else 1])
+        imgs = self.load(pkt).images
         if not imgs:
             raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
         R = None if self._first else camera_rotation(gyro_rotation(pkt.imu), self._T_b_c)
