@@ -106,7 +106,7 @@ class PointTracks:
     def _velocities(self, obs: list[Obs], frames: list[int], p_w: np.ndarray) -> np.ndarray:
         """(n, 2) image velocities (normalized units/s) multiplying td: with
         ``td_velocity = "predicted"`` (the default) those of ``p_w`` seen by a camera moving
-        as the state says (``LandmarkManager._motion_table``: ``dp_c/dt = -w x p_c - v``),
+        as the state says (``vio.backend.motion.motion_table``: ``dp_c/dt = -w x p_c - v``),
         so pixel noise does not pull td towards zero; zero where the prediction is
         further than ``td_velocity_gate`` from the measurement or the point is not in
         front; the measured ones otherwise. Capped at ``td_velocity_max``."""

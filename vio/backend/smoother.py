@@ -112,7 +112,7 @@ def qr_resolve(est: "Estimator", g: gtsam.NonlinearFactorGraph, exc: RuntimeErro
     not an indeterminate system, ``g``'s factors not all found) or QR refuses too."""
     if est.smoother_factorization != "CHOLESKY" or "Indeterminate" not in str(exc):
         raise exc
-    mine = [g.at(i) for i in range(g.size())]   # holds the wrappers: pybind11 returns these
+    mine = [g.at(i) for i in range(g.size())]   # alive, so pybind11 returns these very objects
     pos = {id(f): i for i, f in enumerate(mine)}
     try:
         new, remap, kept = rebuilt(est, factorization="QR")
@@ -120,8 +120,8 @@ def qr_resolve(est: "Estimator", g: gtsam.NonlinearFactorGraph, exc: RuntimeErro
         raise exc from None
     slots = [-1] * len(mine)
     for j, f in kept:
-        i = pos.get(id(f))
-        if i is not None and mine[i] is f:
+        i = pos.get(id(f))   # ids of live objects are unique: an equal id is the same factor
+        if i is not None:
             slots[i] = remap.pop(j)
     if min(slots, default=0) < 0:
         raise exc

@@ -283,7 +283,7 @@ class LandmarkManager:
         return vel, (rvel if self.est.T_c0_c1 is not None else None)
 
     def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
-        """``vio.backend.td_velocity.motion_table`` of this update (cached per update)."""
+        """``vio.backend.motion.motion_table`` of this update (cached per update)."""
         if not self._motion_cache:
             self._motion_cache["table"] = motion_table(self.est, k, pred, lambda f: self._pose(f, k, pred))
         return self._motion_cache["table"]
