@@ -275,7 +275,9 @@ class SolverConfig:
     111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
     the update is re-solved with QR (``vio.backend.smoother``). ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
-    time offset td (seconds), whose steps are ~1e-4."""
+    time offset td (seconds), whose steps are ~1e-4. ``incremental_padding``: inert
+    keys that keep iSAM2 off its batch step, which calls every Python factor again
+    (``vio.backend.padding``; real MH_05 mono: same trajectory, fewer callbacks)."""
 
     lag_s: float = 2.5
     relinearize_threshold: float = 0.01
@@ -284,6 +286,7 @@ class SolverConfig:
     wildfire_threshold: float = 1e-6
     td_relinearize_threshold: float = 1e-4
     extra_iterations: int = 0
+    incremental_padding: bool = True
 
 
 @dataclass(frozen=True)

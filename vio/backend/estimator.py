@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import gtsam
 import numpy as np
 
-from vio.backend import graph, smoother
+from vio.backend import graph, padding, smoother
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
@@ -115,6 +115,7 @@ class Estimator:
         self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.smoother)
         self.qr_since: int | None = None
         self.qr_resolves = 0
+        self.n_pad = 0      # padding keys in the smoother (vio.backend.padding)
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
         self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
@@ -150,6 +151,7 @@ class Estimator:
         instead)."""
         self.smoother = self._new_smoother()
         self.smoother_factorization, self.qr_since = self.cfg.solver.factorization, None
+        self.n_pad = 0
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)
@@ -272,6 +274,7 @@ class Estimator:
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
 
     def _update(self, g, v, stamps, removals) -> None:
+        padding.pad(self, g, v, stamps)
         try:
             self.smoother.update(g, v, stamps, removals)
             indices = list(self.smoother.getISAM2Result().getNewFactorsIndices())

@@ -45,7 +45,7 @@ def _threshold_map(general: float, td: float,
     """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
     step and would never cross the general threshold."""
     m = gtsam.ISAM2ThresholdMap()
-    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, **(extra or {})}
+    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, "z": 1, **(extra or {})}
     for ch, dim in dims.items():
         m.insert((ch, np.full(dim, general)))
     m.insert(("d", np.array([td])))
