@@ -30,6 +30,7 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
+from factors.stack import Member
 from factors.projection import COL_LAM, COL_TC, COL_TI, COL_TJ, transfer_point
 from factors.td_projection import shift_uv
 
@@ -66,6 +67,14 @@ def depth_transfer_factor(keys: Sequence[int], uv_a: np.ndarray, lam_ref: float,
     """``gtsam.CustomFactor`` on ``[lambda_o, lambda_n, T_b_c, T_w_ba, T_w_ba']`` (+ ``td``):
     the two inverse depths describe one point, to a relative depth ``sigma`` at the old
     key's inverse depth ``lam_ref`` (1/m, its estimate when the factor is built)."""
+    mem = depth_transfer_member(keys, uv_a, lam_ref, sigma, vel_a, offset_a)
+    return custom_factor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), mem.keys, mem.kinds, mem.fn,
+                         health, cache=True)
+
+
+def depth_transfer_member(keys: Sequence[int], uv_a: np.ndarray, lam_ref: float, sigma: float = 1e-4,
+                          vel_a: np.ndarray | None = None, offset_a: float = 0.0) -> Member:
+    """The depth-transfer residual (``depth_transfer_factor``) for a stack (``factors.stack``)."""
     keys = [int(k) for k in keys]
     if len(keys) not in (5, 6) or len(set(keys)) != len(keys):
         raise ValueError(f"depth_transfer_factor needs 5 or 6 distinct keys, got {keys}")
@@ -78,4 +87,4 @@ def depth_transfer_factor(keys: Sequence[int], uv_a: np.ndarray, lam_ref: float,
     def fn(args: list) -> tuple[np.ndarray, list[np.ndarray]]:
         return depth_transfer_residual(args, uv, lam_ref, vel_a, offset_a)
 
-    return custom_factor(gtsam.noiseModel.Isotropic.Sigma(1, float(sigma)), keys, kinds, fn, health, cache=True)
+    return Member(tuple(keys), tuple(kinds), fn, 1, float(sigma))

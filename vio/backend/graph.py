@@ -17,7 +17,8 @@ from factors.landmark import landmark_anchor_jacobian, landmark_factor, landmark
 from factors.anchor_noise import AnchorWhitening
 from factors.jit import njit as _njit
 from factors.track_kernel import whitening
-from factors.reanchor import depth_transfer_factor
+from factors.reanchor import depth_transfer_member
+from factors.stack import Member
 from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis, transfer_point
 from factors.robust import RobustKernel, reweight_blocks
 from factors.stereo import StereoRig, make_stereo_track, stereo_anchor_jacobian, stereo_factor, stereo_rig
@@ -217,14 +218,14 @@ def _image_velocity_rows(uv: np.ndarray, depth: np.ndarray, w: np.ndarray, vel: 
 
 def build_depth_transfer(old_key: int, new_key: int, old_anchor: int, new_anchor: int,
                          uv_old: np.ndarray, lam_old: float, shift: tuple | None,
-                         cfg: BackendConfig) -> gtsam.NonlinearFactor:
-    """``factors.reanchor`` factor between a landmark's old key (anchored in ``old_anchor``
+                         cfg: BackendConfig) -> Member:
+    """``factors.reanchor`` residual (a ``factors.stack`` member) between a landmark's old key (anchored in ``old_anchor``
     with observation ``uv_old``, estimate ``lam_old``) and its new key; ``shift``: the old
     anchor observation's ``(vel, offset)`` from ``Track.td_shift`` (None: unshifted)."""
     _, td_key = _vision_options(cfg)
     vel, off = shift if shift is not None else (np.zeros(2), 0.0)
     keys = [old_key, new_key, EXTRINSIC, X(old_anchor), X(new_anchor)] + ([td_key] if td_key is not None else [])
-    return depth_transfer_factor(keys, uv_old, lam_old, cfg.vision.reanchor_sigma,
+    return depth_transfer_member(keys, uv_old, lam_old, cfg.vision.reanchor_sigma,
                                  vel if td_key is not None else None, float(off))
 
 

@@ -19,7 +19,7 @@ prior: a separate tree of the Bayes forest that no update touches, only counted 
 threshold even when every real key is touched: ``n_pad >= 0.54 n_real`` (1 / 0.65 - 1),
 with a margin. They never leave the window (their timestamps follow the newest
 keyframe) and are never read; each costs ~0.1 us in the Values copy pybind11 makes for
-every Python callback (real MH_05 mono: ~160 padding keys for ~155 real ones).
+every Python callback (real MH_05 mono: ~90-100 padding keys for 155-170 real ones).
 ``SolverConfig.incremental_padding`` turns this off.
 """
 

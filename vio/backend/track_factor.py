@@ -21,6 +21,7 @@ import numpy as np
 from factors import track_kernel
 from factors.adapter import custom_factor
 from factors.projection import tangent_basis
+from factors.stack import Member
 from factors.stereo import StereoRig
 from vio.backend import graph
 from vio.backend.config import BackendConfig
@@ -42,7 +43,21 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
                        sigma: float, line_time_s: float, vel: np.ndarray | None = None,
                        rvel: np.ndarray | None = None,
                        at: graph.LinPoint | None = None) -> gtsam.NonlinearFactor:
-    """The landmark factor of ``track`` over ``frames`` (anchor first).
+    """The landmark factor of ``track`` over ``frames`` (anchor first): the
+    ``track_member`` as a ``gtsam.CustomFactor``."""
+    return member_factor(track_member(track, frames, rig, cfg, sigma, line_time_s, vel, rvel, at))
+
+
+def member_factor(mem: Member) -> gtsam.NonlinearFactor:
+    """A ``track_member`` as its own ``gtsam.CustomFactor`` (isotropic noise)."""
+    return custom_factor(_noise(mem.m, mem.sigma), mem.keys, mem.kinds, mem.fn, cache=True)  # fn is pure
+
+
+def track_member(track: Track, frames: list[int], rig: StereoRig | None, cfg: BackendConfig,
+                 sigma: float, line_time_s: float, vel: np.ndarray | None = None,
+                 rvel: np.ndarray | None = None, at: graph.LinPoint | None = None) -> Member:
+    """The residual of ``track`` over ``frames`` (anchor first), for a factor or a stack
+    (``factors.stack``).
 
     ``rig``: the stereo rig (None: cam1 observations are ignored, mono); ``sigma``
     (normalized units) the observation noise; ``vel`` / ``rvel`` (n, 2): cam0 /
@@ -79,7 +94,7 @@ def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, c
                                         sigma, robust, W)
         return r, J
 
-    return custom_factor(_noise(2 * len(uv), float(sigma)), fkeys, kinds, fn, cache=True)  # fn is pure
+    return Member(tuple(fkeys), tuple(kinds), fn, 2 * len(uv), float(sigma))
 
 
 def _layout(obs: list, v0: np.ndarray, off: np.ndarray, rig: StereoRig | None,

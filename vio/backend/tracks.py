@@ -22,7 +22,8 @@ from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
 from vio.backend.td_velocity import predicted_velocities
-from vio.backend.track_factor import build_track_factor
+from vio.backend.track_factor import member_factor, track_member
+from factors.stack import Member, stacked_factor
 from vio.io.types import FeatureFrame
 
 if TYPE_CHECKING:
@@ -113,6 +114,7 @@ class LandmarkManager:
         self._motion_cache: dict = {}
         self._pose_cache: dict[int, gtsam.Pose3] = {}
         self._calib_cache: tuple | None = None
+        farewells: list[Member] = []
         t = self.est.kf_t[k] * 1e-9
         leave = set(leaving)
         self.points.begin_update(lambda: self._motion_table(k, pred))
@@ -129,7 +131,7 @@ class LandmarkManager:
                 if not live:      # dead: marginalized with its anchor this update
                     del self.tracks[lid]
                     continue
-                self._hand_over(tr, k, pred, leave, g, v, stamps, removals)
+                self._hand_over(tr, k, pred, leave, g, v, stamps, removals, farewells)
             for f in [f for f in tr.obs if f in leave]:
                 del tr.obs[f]
             if not tr.obs:
@@ -152,16 +154,19 @@ class LandmarkManager:
                 lam = v.atVector(tr.key)[0] if v.exists(tr.key) else self.est.values.atVector(tr.key)[0]
                 self._add_factor(tr, g, k, pred, float(lam))
                 stamps[tr.key] = t
+        if farewells:   # one callback for all of them (factors.stack): marginalized in this update
+            g.add(stacked_factor(farewells))
         return removals
 
     def _hand_over(self, tr: Track, k: int, pred: gtsam.NavState, leave: set[int],
                    g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict,
-                   removals: list[int]) -> None:
+                   removals: list[int], farewells: list[Member]) -> None:
         """Re-anchor a live track whose anchor leaves: a new key in its oldest remaining
         keyframe, depth transferred from the current point. With
         ``VisionConfig.marginalize_reanchored`` the leaving observations become targets of a
-        farewell factor of the new key and a depth-transfer factor ties the old key to the
-        new one; the smoother marginalizes both with the leaving keyframes, so what the track
+        farewell residual of the new key and a depth-transfer residual ties the old key to
+        the new one (both appended to ``farewells``, stacked into one factor by the caller);
+        the smoother marginalizes them with the leaving keyframes, so what the track
         measured there stays in its prior instead of being dropped."""
         vals = self.est.values
         p_w = self._point_w(tr)
@@ -179,10 +184,10 @@ class LandmarkManager:
             lam = float(v.atVector(tr.key)[0])
             anchor = dataclasses.replace(tr.obs[tr.anchor], right_uv=None, right_velocity=None)
             farewell = Track(tr.lid, {tr.anchor: anchor, **leaving}, tr.key, tr.anchor)
-            g.add(self._factor(farewell, [tr.anchor, *leaving], k, pred, lam))
+            farewells.append(self._member(farewell, [tr.anchor, *leaving], k, pred, lam))
             if old_key is not None and lam_o > 0:
-                g.add(graph.build_depth_transfer(old_key, tr.key, old_anchor, tr.anchor,
-                                                 leaving[old_anchor].uv, lam_o, old_shift, self.est.cfg))
+                farewells.append(graph.build_depth_transfer(old_key, tr.key, old_anchor, tr.anchor,
+                                                            leaving[old_anchor].uv, lam_o, old_shift, self.est.cfg))
 
     def _to_point(self, tr: Track, k: int, pred: gtsam.NavState, t: float, g: gtsam.NonlinearFactorGraph,
                   v: gtsam.Values, stamps: dict) -> None:
@@ -227,12 +232,11 @@ class LandmarkManager:
                     lam: float) -> None:
         """The track's factor over all its observations (its smoother index is recorded)."""
         self._pending.append((tr, int(g.size())))
-        g.add(self._factor(tr, tr.frames(), k, pred, lam))
+        g.add(member_factor(self._member(tr, tr.frames(), k, pred, lam)))
 
-    def _factor(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
-                lam: float) -> gtsam.NonlinearFactor:
-        """Landmark (or, with cam1 observations, stereo) factor of ``tr`` over ``frames``
-        (anchor first) at inverse depth ``lam``."""
+    def _member(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState, lam: float) -> Member:
+        """Landmark (or, with cam1 observations, stereo) residual of ``tr`` over ``frames``
+        (anchor first) at inverse depth ``lam`` (``track_factor.track_member``)."""
         cam = self.est.cam
         vel = rvel = None
         if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
@@ -246,8 +250,7 @@ class LandmarkManager:
             at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
         if self._rig is None and self.est.C_stereo is not None:
             self._rig = graph.stereo_rig(self.est.C_stereo)
-        return build_track_factor(tr, frames, self._rig, self.est.cfg, self.est.sigma, cam.line_time_s,
-                                  vel, rvel, at)
+        return track_member(tr, frames, self._rig, self.est.cfg, self.est.sigma, cam.line_time_s, vel, rvel, at)
 
     def _predicted_velocities(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
                               lam: float) -> tuple[np.ndarray, np.ndarray | None]:
