@@ -77,16 +77,23 @@ def tangent_basis(uv: np.ndarray) -> np.ndarray:
     ``b x row0 = [-u v, 1 + u^2, -v] / (sqrt(1 + u^2) |m|)`` with ``b = m / |m|`` the unit
     bearing. Smooth in ``uv`` everywhere (unlike VINS's
     switch on the z axis). The td factor builds ``B`` from the raw (unshifted) observation,
-    so ``B`` never depends on a variable.
+    so ``B`` never depends on a variable. Compiled (a landmark's factor is built at every
+    keyframe; ~10 numpy calls on a few rows cost ~15 us, this ~1 us; same arithmetic).
     """
-    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    u, v = uv[:, 0], uv[:, 1]
-    s = np.sqrt(1.0 + u * u)
-    sn = s * np.sqrt(1.0 + u * u + v * v)
+    uv = np.ascontiguousarray(uv, dtype=float).reshape(-1, 2)
     B = np.zeros((uv.shape[0], 2, 3))
-    B[:, 0, 0], B[:, 0, 2] = 1.0 / s, -u / s
-    B[:, 1, 0], B[:, 1, 1], B[:, 1, 2] = -u * v / sn, (1.0 + u * u) / sn, -v / sn
+    _tangent_basis_into(uv, B)
     return B
+
+
+@_njit
+def _tangent_basis_into(uv: np.ndarray, B: np.ndarray) -> None:
+    for i in range(uv.shape[0]):
+        u, v = uv[i, 0], uv[i, 1]
+        s = np.sqrt(1.0 + u * u)
+        sn = s * np.sqrt(1.0 + u * u + v * v)
+        B[i, 0, 0], B[i, 0, 2] = 1.0 / s, -u / s
+        B[i, 1, 0], B[i, 1, 1], B[i, 1, 2] = -u * v / sn, (1.0 + u * u) / sn, -v / sn
 
 
 # ---------------------------------------------------------------------------------------

@@ -268,15 +268,17 @@ class LandmarkManager:
         pos, R, t, w, v = self._motion_table(k, pred)
         obs = [tr.obs[f] for f in frames]
         n = len(obs)
-        has_r = np.array([o.right_uv is not None for o in obs])
+        right = [o.right_uv is not None for o in obs]
+        has_r = np.array(right)
         ruv, rmeas = np.zeros((n, 2)), np.zeros((n, 2))
-        if has_r.any() and self.est.T_c0_c1 is not None:
+        if self.est.T_c0_c1 is not None and any(right):
             for i in np.flatnonzero(has_r):
                 ruv[i], rmeas[i] = obs[i].right_uv, obs[i].right_velocity
-        if self._rig_c1 is None and self.est.T_c0_c1 is not None:
-            self._rig_c1 = (np.ascontiguousarray(self.est.T_c0_c1.rotation().matrix().T),
-                            np.array(self.est.T_c0_c1.translation()))   # writable: one Numba signature
-        R10, t01 = self._rig_c1 if self._rig_c1 is not None else (np.eye(3), np.zeros(3))
+        if self._rig_c1 is None:   # writable arrays: one Numba signature
+            self._rig_c1 = ((np.ascontiguousarray(self.est.T_c0_c1.rotation().matrix().T),
+                             np.array(self.est.T_c0_c1.translation())) if self.est.T_c0_c1 is not None
+                            else (np.eye(3), np.zeros(3)))
+        R10, t01 = self._rig_c1
         vel, rvel = np.empty((n, 2)), np.empty((n, 2))
         vc = self.est.cfg.vision
         predicted_velocities(np.array([pos[f] for f in frames], dtype=np.int64),
