@@ -47,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 V1_01 = SHARED / "euroc_V1_01_30s_features"
 MH_01_STEREO = SHARED / "euroc_MH_01_stereo_synimu"   # real stereo images, IMU from ground truth
+MH_05_MONO = SHARED / "euroc_MH_05_mono_15s"          # real cam0 images in flight, real IMU
 IMU_GT = SHARED / "euroc_imu_gt"
 SEQUENCES = ("MH_03_medium", "MH_04_difficult", "MH_05_difficult", "V1_02_medium",
              "V1_03_difficult", "V2_01_easy", "V2_02_medium", "V2_03_difficult")
@@ -232,15 +233,18 @@ def sim_spec(mode: str, label: str, seed: int, seconds: float, stereo: bool = Tr
 
 def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
     """The sequences a mode runs on: the real MH_01 stereo images (320 pairs; quick: 120)
-    for ``stereo``, ``direct`` and ``hybrid``, then the rendered ones: the stereo ones
-    (global shutter, rolling shutter, exposure changes) for ``stereo``, the
-    exposure-change one for ``direct`` and ``hybrid``, the cam0-only one for ``mono``;
-    20 s (quick: 8 s)."""
+    for ``stereo``, ``direct`` and ``hybrid``, the real MH_05 cam0 images in flight with
+    their real IMU (300 frames; quick: 120; td unknown) for ``mono``, then the rendered
+    ones: the stereo ones (global shutter, rolling shutter, exposure changes) for
+    ``stereo``, the exposure-change one for ``direct`` and ``hybrid``, the cam0-only one
+    for ``mono``; 20 s (quick: 8 s)."""
     seconds = 8.0 if quick else 20.0
     want_stereo = mode != "mono"
     photometric = mode in ("direct", "hybrid")
-    real = [DatasetSpec("MH_01_real_stereo", mode, MH_01_STEREO, None, 0.0, group="MH_01_real_stereo",
-                        max_frames=120 if quick else None)] if want_stereo else []
+    cap = 120 if quick else None
+    real = ([DatasetSpec("MH_01_real_stereo", mode, MH_01_STEREO, None, 0.0, group="MH_01_real_stereo",
+                         max_frames=cap)] if want_stereo else
+            [DatasetSpec("MH_05_real_mono", mode, MH_05_MONO, None, None, group="MH_05_real_mono", max_frames=cap)])
     return real + [sim_spec(mode, label, seed, seconds, stereo, **extra)
                    for label, seed, extra, stereo in SIM_SEQUENCES
                    if stereo == want_stereo and (not photometric or label in PHOTOMETRIC_SEQUENCES)]

@@ -111,11 +111,12 @@ def test_registry_lists_image_specs():
     import datasets as ds
     specs, skipped = ds.registry(quick=False, modes=["stereo", "mono", "direct", "hybrid"])
     real = [s for s in specs if s.sim is None]
-    # the real MH_01 stereo images run in stereo, direct and hybrid (skipped, with the
-    # reason, where ../shared is absent)
-    assert sorted(s.mode for s in real) == (["direct", "hybrid", "stereo"] if real else [])
-    assert all(s.source == ds.MH_01_STEREO and s.td_true_s == 0.0 for s in real)
-    assert set(skipped) == (set() if real else {"MH_01_real_stereo"})
+    # the real MH_01 stereo images run in stereo, direct and hybrid, the real MH_05 cam0
+    # images (td unknown) in mono (skipped, with the reason, where ../shared is absent)
+    assert sorted(s.mode for s in real) == (["direct", "hybrid", "mono", "stereo"] if real else [])
+    assert all(s.source == ds.MH_01_STEREO and s.td_true_s == 0.0 for s in real if s.mode != "mono")
+    assert all(s.source == ds.MH_05_MONO and s.td_true_s is None for s in real if s.mode == "mono")
+    assert set(skipped) == (set() if real else {"MH_01_real_stereo", "MH_05_real_mono"})
     specs = [s for s in specs if s.sim is not None]
     by_mode: dict = {}
     for s in specs:
