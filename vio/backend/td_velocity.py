@@ -81,3 +81,35 @@ def predicted_velocities(idx: np.ndarray, uv: np.ndarray, meas: np.ndarray, has_
             v1[r] = R10[r, 0] * vc[0] + R10[r, 1] * vc[1] + R10[r, 2] * vc[2]
         _velocity(ruv[o, 0], ruv[o, 1], z1, w1, v1, p)
         _gate(p, rmeas[o], gate, rvel[o])
+
+
+@_njit
+def point_velocities(idx: np.ndarray, R: np.ndarray, t: np.ndarray, w: np.ndarray, v: np.ndarray,
+                     p_w: np.ndarray, meas: np.ndarray, min_depth: float, gate: float, vmax: float,
+                     out: np.ndarray) -> None:
+    """Fill ``out`` (n, 2) with the predicted image velocities of the world point ``p_w``
+    (3,) in the cam0 of window rows ``idx`` (n,) (``R``, ``t``, ``w``, ``v`` as in
+    :func:`predicted_velocities`): ``dp_c/dt = -w x p_c - v``, the projection's derivative;
+    zero where the point is closer than ``min_depth`` or the prediction is further than
+    ``gate`` from the measured (capped) velocity ``meas`` (n, 2), or faster than ``vmax``.
+    ``vio.backend.point_tracks.PointTracks._velocities``' numpy arithmetic, compiled."""
+    pc, dp = np.empty(3), np.empty(3)
+    for o in range(idx.shape[0]):
+        f = idx[o]
+        d0, d1, d2 = p_w[0] - t[f, 0], p_w[1] - t[f, 1], p_w[2] - t[f, 2]
+        for b in range(3):
+            pc[b] = R[f, 0, b] * d0 + R[f, 1, b] * d1 + R[f, 2, b] * d2
+        dp[0] = -(w[f, 1] * pc[2] - w[f, 2] * pc[1]) - v[f, 0]
+        dp[1] = -(w[f, 2] * pc[0] - w[f, 0] * pc[2]) - v[f, 1]
+        dp[2] = -(w[f, 0] * pc[1] - w[f, 1] * pc[0]) - v[f, 2]
+        z = pc[2]
+        front = z >= min_depth
+        zs = z if front else 1.0
+        p0 = (dp[0] * zs - pc[0] * dp[2]) / zs ** 2
+        p1 = (dp[1] * zs - pc[1] * dp[2]) / zs ** 2
+        ex, ey = p0 - meas[o, 0], p1 - meas[o, 1]
+        if not (front and np.sqrt(ex * ex + ey * ey) <= gate):
+            p0, p1 = 0.0, 0.0
+        if not np.sqrt(p0 * p0 + p1 * p1) <= vmax:
+            p0, p1 = 0.0, 0.0
+        out[o, 0], out[o, 1] = p0, p1
