@@ -93,10 +93,10 @@ def custom_factor(noise: gtsam.noiseModel.Base, keys: Sequence[int], kinds: Sequ
     again when the values of all keys are bitwise the same and ``state()`` (a snapshot of
     whatever mutable state ``fn`` reads, taken after the evaluation; None: ``fn`` is pure)
     compares equal. iSAM2 relinearizes EVERY factor at its unchanged linearization point
-    whenever an update touches >= 65% of the variables (``ISAM2::recalculateBatch``; the
-    fixed-lag window's marginalization does so at most keyframes) and again when it
-    marginalizes a factor's keys (``marginalizeLeaves``): for a pure ``fn`` the cached
-    answer is the same bits. A factor that refines internal variables at each
+    whenever an update touches >= 65% of the variables (``ISAM2::recalculateBatch``; a
+    sliding window's keyframe update nearly always does, unless padded:
+    ``vio.backend.padding``) and again when it marginalizes a factor's keys
+    (``marginalizeLeaves``): for a pure ``fn`` the cached answer is the same bits. A factor that refines internal variables at each
     linearization (inverse depths eliminated inside) is then refined only when its keys
     move, as GTSAM's smart factors re-triangulate only when their cameras move.
     """

@@ -146,3 +146,41 @@ def test_not_a_refusal_is_reraised():
     est = _est("QR")
     with pytest.raises(RuntimeError, match="boom"):
         smoother.qr_resolve(est, gtsam.NonlinearFactorGraph(), RuntimeError("boom"))
+
+
+def test_update_hands_callbacks_the_linearization_point_uncopied():
+    """smoother.update holds a wrapper of iSAM2's theta_, so pybind11 passes it to every
+    Python factor callback instead of a copy of the whole Values; same estimate."""
+    from factors.adapter import custom_factor
+    L = gtsam.symbol_shorthand.L
+
+    def run(held: bool):
+        sm = gtsam.IncrementalFixedLagSmoother(10.0, gtsam.ISAM2Params())
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for i in range(50):
+            g.add(_prior(L(i), [float(i)], [1.0]))
+            v.insert(L(i), np.array([0.5 * i]))
+        seen = []
+
+        def fn(args):
+            return np.array([args[0][0] - args[1][0] - 1.0]), np.array([[1.0, -1.0]])
+        for i in range(1, 50):
+            g.add(custom_factor(gtsam.noiseModel.Isotropic.Sigma(1, 0.1), [L(i), L(i - 1)], [1, 1], fn))
+
+        def spy(this, values, H):
+            seen.append(values)
+            if H is not None:
+                H[0] = np.zeros((1, 1))
+            return np.zeros(1)
+        g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), gtsam.KeyVector([L(0)]), spy))
+        stamps = {L(i): 0.0 for i in range(50)}
+        (smoother.update(sm, g, v, stamps) if held else sm.update(g, v, stamps))
+        theta = sm.getLinearizationPoint()
+        return sm.calculateEstimate(), seen, theta
+
+    est_h, seen_h, theta_h = run(True)
+    est_p, seen_p, theta_p = run(False)
+    assert seen_h and all(s is theta_h for s in seen_h)
+    assert seen_p and not any(s is theta_p for s in seen_p)
+    L = gtsam.symbol_shorthand.L
+    assert all(est_h.atVector(L(i))[0] == est_p.atVector(L(i))[0] for i in range(50))

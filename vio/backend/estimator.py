@@ -171,7 +171,7 @@ class Estimator:
         v.insert(graph.EXTRINSIC, T_b_c)
         v.insert(graph.TD, np.array([td]))
         t = state.t_ns * 1e-9
-        self.smoother.update(g, v, {X(k): t, V(k): t, B(k): t, graph.EXTRINSIC: t, graph.TD: t})
+        smoother.update(self.smoother, g, v, {X(k): t, V(k): t, B(k): t, graph.EXTRINSIC: t, graph.TD: t})
         self.values = self.smoother.calculateEstimate()
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, state.bias)
 
@@ -276,7 +276,7 @@ class Estimator:
     def _update(self, g, v, stamps, removals) -> None:
         padding.pad(self, g, v, stamps)
         try:
-            self.smoother.update(g, v, stamps, removals)
+            smoother.update(self.smoother, g, v, stamps, removals)
             indices = list(self.smoother.getISAM2Result().getNewFactorsIndices())
         except RuntimeError as exc:   # re-raised unless a Cholesky refusal QR can take
             indices = smoother.qr_resolve(self, g, exc)
@@ -284,7 +284,7 @@ class Estimator:
         for src in self.sources:
             src.record_factor_indices(indices)
         for _ in range(self.cfg.solver.extra_iterations):
-            self.smoother.update()
+            smoother.update(self.smoother)
         self.values = self.smoother.calculateEstimate()
 
     def _remove_outliers(self) -> int:
