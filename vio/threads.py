@@ -8,9 +8,14 @@ process, whose spinning takes CPU from the other process. Measured on real MH_05
 4.06 / 4.15 s, of the front-end worker 3.98 / 4.03 -> 3.61 / 3.65 s, real-time factor
 2.9 -> 3.0-3.1x, trajectory unchanged; real MH_01 stereo 3.50 -> 3.40 s / 7.85 -> 7.56 s.
 
+It also keeps runs bit-reproducible: with OpenBLAS's default threads an in-process
+``run_dataset`` under load differed in the last bits from some keyframe on (generated
+MH_03 td 5 ms features, four processes at once: 3 of 28 runs, 9e-10 m), with one BLAS
+thread 0 of 16.
+
 This module imports nothing heavy: call :func:`one_blas_thread` before numpy is first
-imported (``vio`` CLI, front-end worker, benchmark workers). A user's own
-``OPENBLAS_NUM_THREADS`` wins.
+imported (``vio`` CLI, front-end worker, benchmark workers; Python users of the API set
+``OPENBLAS_NUM_THREADS=1`` themselves). A user's own ``OPENBLAS_NUM_THREADS`` wins.
 """
 
 from __future__ import annotations
