@@ -17,13 +17,13 @@ from typing import TYPE_CHECKING
 import gtsam
 import numpy as np
 
+from factors.stack import Member, stacked_factor
 from vio.backend import graph
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
 from vio.backend.td_velocity import predicted_velocities
 from vio.backend.track_factor import member_factor, track_member
-from factors.stack import Member, stacked_factor
 from vio.io.types import FeatureFrame
 
 if TYPE_CHECKING:
