@@ -30,6 +30,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
+from vio.threads import one_blas_thread  # noqa: E402
+
+one_blas_thread()   # before numpy loads: bit-reproducible runs (vio.threads)
+
 from vio import inject  # noqa: E402
 from vio.evaluation import evaluate  # noqa: E402
 from vio.faults import ImuScreenConfig, _hampel, screen_imu  # noqa: E402

@@ -31,6 +31,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
+from vio.threads import one_blas_thread  # noqa: E402
+
+one_blas_thread()   # before numpy loads: bit-reproducible runs (vio.threads)
+
 from vio.evaluation import evaluate  # noqa: E402
 from vio.io.euroc import load_euroc  # noqa: E402
 from vio.run import default_config, load_config, run_dataset  # noqa: E402
