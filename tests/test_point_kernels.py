@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from vio.backend import graph
-from vio.backend.motion import _cross
+from vio.backend.landmarks import cross3
 from vio.backend.point_tracks import point_worst_errors
 from vio.backend.td_velocity import point_velocities
 
@@ -72,4 +72,4 @@ def test_cross_matches_numpy():
     rng = np.random.default_rng(7)
     for _ in range(1000):
         a, b = rng.normal(size=3) * rng.uniform(0, 50), rng.normal(size=3)
-        assert np.array_equal(_cross(a, b), np.cross(a, b))
+        assert np.array_equal(cross3(a, b), np.cross(a, b))

@@ -158,8 +158,12 @@ def _row_offsets(obs: list, line_time_s: float) -> np.ndarray:
     """Time offset of each observation (s): the rolling-shutter delay of its row,
     ``row / ROWS * t_readout`` with ``t_readout = ROWS * line_time`` (seed 004; 0 when the
     row is unknown), minus the td its keyframe time already holds (``Obs.td_obs``)."""
-    rows = np.array([o.row for o in obs], float)
-    td_obs = np.array([o.td_obs for o in obs], float)
+    return row_offsets(np.array([o.row for o in obs], float), np.array([o.td_obs for o in obs], float),
+                       line_time_s)
+
+
+def row_offsets(rows: np.ndarray, td_obs: np.ndarray, line_time_s: float) -> np.ndarray:
+    """:func:`_row_offsets` of the observations' rows (NaN: unknown) and ``td_obs`` (s)."""
     return np.where(np.isfinite(rows), rows * line_time_s, 0.0) - td_obs
 
 

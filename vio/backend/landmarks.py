@@ -81,8 +81,8 @@ def bearing_depth(anchor_uv: np.ndarray, T_w_ca: gtsam.Pose3,
         m_j = np.array([uv[0], uv[1], 1.0])
         T_j_a = T_w_cj.between(T_w_ca)
         R, t = T_j_a.rotation().matrix(), T_j_a.translation()
-        A.append(_cross3(m_j, R @ m_a))
-        b.append(-_cross3(m_j, t))
+        A.append(cross3(m_j, R @ m_a))
+        b.append(-cross3(m_j, t))
         ray_j_w = T_w_cj.rotation().matrix() @ m_j
         cosang = ray_a_w @ ray_j_w / (np.linalg.norm(ray_a_w) * np.linalg.norm(ray_j_w))
         max_angle = max(max_angle, float(np.degrees(np.arccos(np.clip(cosang, -1, 1)))))
@@ -100,6 +100,6 @@ def stereo_depth(uv0: np.ndarray, uv1: np.ndarray, T_c0_c1: gtsam.Pose3) -> floa
     return d
 
 
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.cross`` of two 3-vectors (the same arithmetic, without its ~20 us of overhead)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])

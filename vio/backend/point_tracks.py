@@ -204,7 +204,7 @@ class PointTracks:
         j = np.array([pos[f] for _, pt in cand for f in pt.frames], dtype=np.int64)
         P = np.array([values.atVector(pt.key) for _, pt in cand], dtype=float).reshape(-1, 3)
         vel = graph._td_velocity(ob[:, 2:4], vc.td_velocity_max)
-        off = np.where(np.isfinite(ob[:, 4]), ob[:, 4] * self.est.cam.line_time_s, 0.0) - ob[:, 5]
+        off = graph.row_offsets(ob[:, 4], ob[:, 5], self.est.cam.line_time_s)
         worst = np.empty(len(cand))
         point_worst_errors(start, j, np.ascontiguousarray(ob[:, :2]), vel, off, P, R, t, td,
                            float(vc.min_depth_m), float(vc.max_depth_m), worst)
@@ -244,6 +244,7 @@ def point_worst_errors(start: np.ndarray, j: np.ndarray, uv: np.ndarray, vel: np
                   + R[f, 2, 2] * (P[i, 2] - t[f, 2]))
             if not (q2 >= min_depth and q2 <= max_depth):
                 worst = np.inf
+                break
         if worst == np.inf:
             out[i] = worst
             continue
