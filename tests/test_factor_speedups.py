@@ -143,7 +143,7 @@ def test_track_factor_equals_the_stereo_and_landmark_builders(stereo_track, fram
     """vio.backend.track_factor linearizes exactly as graph.build_stereo_factor /
     build_landmark_factor (td, Huber, anchor whitening on); also a stereo track seen
     only in its anchor keyframe."""
-    from vio.backend.track_factor import build_track_factor
+    from vio.backend.track_factor import member_factor, track_member
     rng = np.random.default_rng(4)
     obs = {}
     for f in frames:
@@ -166,7 +166,7 @@ def test_track_factor_equals_the_stereo_and_landmark_builders(stereo_track, fram
     ref = (graph.build_stereo_factor(tr, rig, cfg, 1e-3, 1e-5, vel, rvel, at, frames) if stereo_track
            else graph.build_landmark_factor(tr, frames, cfg, 1e-3, 1e-5, vel, at))
     shift_ref = {f: (v.copy(), o) for f, (v, o) in tr.td_shift.items()}
-    got = build_track_factor(tr, frames, rig, cfg, 1e-3, 1e-5, vel, rvel, at)
+    got = member_factor(track_member(tr, frames, rig, cfg, 1e-3, 1e-5, vel, rvel, at))
     assert list(got.keys()) == list(ref.keys())
     a, b = ref.linearize(vals), got.linearize(vals)
     assert np.array_equal(a.jacobian()[0], b.jacobian()[0]) and np.array_equal(a.jacobian()[1], b.jacobian()[1])

@@ -39,15 +39,6 @@ def _noise(m: int, sigma: float) -> gtsam.noiseModel.Base:
     return _NOISE[key]
 
 
-def build_track_factor(track: Track, frames: list[int], rig: StereoRig | None, cfg: BackendConfig,
-                       sigma: float, line_time_s: float, vel: np.ndarray | None = None,
-                       rvel: np.ndarray | None = None,
-                       at: graph.LinPoint | None = None) -> gtsam.NonlinearFactor:
-    """The landmark factor of ``track`` over ``frames`` (anchor first): the
-    ``track_member`` as a ``gtsam.CustomFactor``."""
-    return member_factor(track_member(track, frames, rig, cfg, sigma, line_time_s, vel, rvel, at))
-
-
 def member_factor(mem: Member) -> gtsam.NonlinearFactor:
     """A ``track_member`` as its own ``gtsam.CustomFactor`` (isotropic noise)."""
     return custom_factor(_noise(mem.m, mem.sigma), mem.keys, mem.kinds, mem.fn, cache=True)  # fn is pure
