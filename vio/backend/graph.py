@@ -238,9 +238,10 @@ def _image_velocity_rows(uv: np.ndarray, depth: np.ndarray, w: np.ndarray, vel: 
 def build_depth_transfer(old_key: int, new_key: int, old_anchor: int, new_anchor: int,
                          uv_old: np.ndarray, lam_old: float, shift: tuple | None,
                          cfg: BackendConfig) -> Member:
-    """``factors.reanchor`` residual (a ``factors.stack`` member) between a landmark's old key (anchored in ``old_anchor``
-    with observation ``uv_old``, estimate ``lam_old``) and its new key; ``shift``: the old
-    anchor observation's ``(vel, offset)`` from ``Track.td_shift`` (None: unshifted)."""
+    """``factors.reanchor`` residual (a ``factors.stack`` member) between a landmark's old
+    key (anchored in ``old_anchor`` with observation ``uv_old``, estimate ``lam_old``) and
+    its new key; ``shift``: the old anchor observation's ``(vel, offset)`` from
+    ``Track.td_shift`` (None: unshifted)."""
     _, td_key = _vision_options(cfg)
     vel, off = shift if shift is not None else (np.zeros(2), 0.0)
     keys = [old_key, new_key, EXTRINSIC, X(old_anchor), X(new_anchor)] + ([td_key] if td_key is not None else [])

@@ -22,7 +22,7 @@ from vio.backend import graph
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
-from vio.backend.td_velocity import predicted_velocities
+from vio.backend.td_velocity import rig_c1, track_velocities
 from vio.backend.track_factor import member_factor, track_member
 from vio.io.types import FeatureFrame
 
@@ -46,7 +46,7 @@ class LandmarkManager:
         self._pose_cache: dict[int, gtsam.Pose3] = {}
         self._calib_cache: tuple | None = None   # (T_b_c, td) of the current update
         self._rig = None                         # factors.stereo.StereoRig of est.C_stereo
-        self._rig_c1 = None                      # (R_c1_c0, t_c0_c1) for the cam1 velocities
+        self._rig_c1 = None                      # td_velocity.rig_c1 of est.T_c0_c1 (stereo)
         self.points = PointTracks(est)           # triangulated tracks as world points (VisionConfig.reanchor)
         graph.compile_kernels()                  # not at the first keyframe: a stall there
 
@@ -254,38 +254,14 @@ class LandmarkManager:
 
     def _predicted_velocities(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
                               lam: float) -> tuple[np.ndarray, np.ndarray | None]:
-        """(n, 2) cam0 and, with stereo, cam1 image velocities of the track's
-        observations predicted from the state (keyframe velocity, bias-corrected gyro,
-        landmark depth) instead of measured: independent of the pixel noise of the
-        observations the factor compares, so the td estimate is not biased towards zero
-        by noise (see ``VisionConfig.td_velocity``). The angular rate is the mean gyro
-        over [t_k, t_k + td] (``vio.imu.KeyframeRates``). The cam1 prediction also keeps
-        the static stereo pair (cam0 and cam1 at one instant) free of td: both of its
-        observations then shift consistently with td, as they must, whereas noisy
-        measured velocities turn every pair into a pull of td towards zero. Where a
-        prediction is further than ``td_velocity_gate`` from the measurement (a wrong
-        depth, or a mistracked observation), the observation gets no td term."""
-        pos, R, t, w, v = self._motion_table(k, pred)
-        obs = [tr.obs[f] for f in frames]
-        n = len(obs)
-        right = [o.right_uv is not None for o in obs]
-        has_r = np.array(right)
-        ruv, rmeas = np.zeros((n, 2)), np.zeros((n, 2))
-        if self.est.T_c0_c1 is not None and any(right):
-            for i in np.flatnonzero(has_r):
-                ruv[i], rmeas[i] = obs[i].right_uv, obs[i].right_velocity
-        if self._rig_c1 is None:   # writable arrays: one Numba signature
-            self._rig_c1 = ((np.ascontiguousarray(self.est.T_c0_c1.rotation().matrix().T),
-                             np.array(self.est.T_c0_c1.translation())) if self.est.T_c0_c1 is not None
-                            else (np.eye(3), np.zeros(3)))
-        R10, t01 = self._rig_c1
-        vel, rvel = np.empty((n, 2)), np.empty((n, 2))
+        """``vio.backend.td_velocity.track_velocities`` of ``tr``'s observations in
+        ``frames`` (anchor first) at inverse depth ``lam``, from this update's motion table."""
+        table = self._motion_table(k, pred)
+        if self._rig_c1 is None and self.est.T_c0_c1 is not None:
+            self._rig_c1 = rig_c1(self.est.T_c0_c1)
         vc = self.est.cfg.vision
-        predicted_velocities(np.array([pos[f] for f in frames], dtype=np.int64),
-                             np.array([o.uv for o in obs], float), np.array([o.velocity for o in obs], float),
-                             has_r & (self.est.T_c0_c1 is not None), ruv, rmeas, R, t, w, v,
-                             float(lam), R10, t01, vc.min_depth_m, vc.td_velocity_gate, vel, rvel)
-        return vel, (rvel if self.est.T_c0_c1 is not None else None)
+        return track_velocities([tr.obs[f] for f in frames], np.array([table[0][f] for f in frames], dtype=np.int64),
+                                table, self._rig_c1, lam, vc.min_depth_m, vc.td_velocity_gate)
 
     def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
         """``vio.backend.motion.motion_table`` of this update (cached per update)."""
