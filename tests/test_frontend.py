@@ -14,7 +14,7 @@ from conftest import shared
 from vio.config import from_dict, read_yaml
 from vio.errors import ConfigError
 from vio.frontend import (Camera, Frontend, FrontendConfig, TrackedFrame, epipolar_distance,
-                          essential_from_pose, triangulate_depth)
+                          essential_from_pose, neighbour_depths, triangulate_depth)
 from vio.frontend.tracker import ransac_inliers
 from vio.io.types import CameraCalib, FeatureFrame
 
@@ -282,3 +282,37 @@ def test_stereo_needs_a_baseline_and_can_be_disabled() -> None:
     cv2.rectangle(img, (200, 150), (400, 300), 255, -1)
     fr = fe.process(0, img, img)
     assert len(fr) == 4 and not fr.stereo_mask.any() and np.all(np.isnan(fr.depth))
+
+
+def test_neighbour_depths_fill_only_missing_rows() -> None:
+    px = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [300.0, 0.0], [310.0, 0.0], [5.0, 1.0], [305.0, 1.0]])
+    depth = np.array([1.0, 1.2, 1.1, 8.0, 9.0, np.nan, np.nan])
+    out = neighbour_depths(px, depth, 3)
+    assert np.array_equal(out[:5], depth[:5])
+    assert out[5] == 1.1                       # median of its three nearest: 1.0, 1.2, 1.1
+    assert out[6] == 8.0                       # 8.0, 9.0 and the nearer wall point 1.1
+    assert neighbour_depths(px, depth, 0) is depth
+    none = np.full(7, np.nan)
+    assert np.isnan(neighbour_depths(px, none, 3)).all()
+
+
+def test_neighbour_guess_matches_more_at_close_range() -> None:
+    """Real MH_01 frames 40-100, the rig 0.7-1.7 m from the wall: a new track started at
+    its neighbours' depth finds its cam1 match far more often than at 3 m, with the same
+    epipolar quality."""
+    mav0 = shared("euroc_MH_01_stereo_synimu") / "mav0"
+    cam0, cam1 = load_calib(mav0, "cam0"), load_calib(mav0, "cam1")
+    pairs = list(zip(image_list(mav0, "cam0"), image_list(mav0, "cam1")))[40:100]
+    E = essential_from_pose(np.linalg.inv(cam0.T_b_c.matrix()) @ cam1.T_b_c.matrix())
+    rate = {}
+    for k in (0, 3):
+        fe = Frontend(cam0, cam1, FrontendConfig(stereo_guess_neighbours=k))
+        n_match = n_all = 0
+        for (t, p0), (_, p1) in pairs:
+            fr = fe.process(t, gray(p0), gray(p1))
+            m = fr.stereo_mask
+            n_match, n_all = n_match + m.sum(), n_all + len(fr)
+            err_px = epipolar_distance(E, fr.uv[m], fr.right_uv[m]) * cam1.intrinsics[0]
+            assert err_px.max() <= 1.5 + 1e-9
+        rate[k] = n_match / n_all
+    assert rate[3] >= 1.4 * rate[0] and rate[3] >= 0.45, rate

@@ -13,13 +13,13 @@ import numpy as np
 
 from vio.frontend.camera import Camera, camera_rotation, epipolar_distance, essential_from_pose
 from vio.frontend.config import FrontendConfig
-from vio.frontend.stereo import StereoMatch, StereoMatcher, triangulate_depth
+from vio.frontend.stereo import StereoMatch, StereoMatcher, neighbour_depths, triangulate_depth
 from vio.frontend.tracker import KltTracker, MonoTracks
 from vio.io.types import CameraCalib, FeatureFrame
 
 __all__ = ["Camera", "FrontendConfig", "Frontend", "KltTracker", "MonoTracks", "StereoMatch",
            "StereoMatcher", "TrackedFrame", "camera_rotation", "epipolar_distance",
-           "essential_from_pose", "triangulate_depth"]
+           "essential_from_pose", "neighbour_depths", "triangulate_depth"]
 
 
 @dataclass(frozen=True)
@@ -99,7 +99,8 @@ class Frontend:
         right_uv, right_px, depth = np.full((m, 2), np.nan), np.full((m, 2), np.nan), np.full(m, np.nan)
         if self.stereo is not None and img1 is not None:
             img1 = self.tracker.preprocess(img1, f"cam {self.cam1.calib.name} image at t={t_ns} ns")
-            match = self.stereo.match(mono.image, img1, mono.px, mono.uv, self._depth_guess(mono.ids))
+            match = self.stereo.match(mono.image, img1, mono.px, mono.uv,
+                                      self._depth_guess(mono.ids, mono.px))
             right_uv, right_px, depth = match.right_uv, match.right_px, match.depth
         frame = TrackedFrame(
             t_ns=mono.t_ns, ids=mono.ids, uv=mono.uv, px=mono.px, velocity=mono.velocity,
@@ -118,9 +119,13 @@ class Frontend:
         idx = order[pos]
         return prev.ids[idx] == ids, idx
 
-    def _depth_guess(self, ids: np.ndarray) -> np.ndarray:
+    def _depth_guess(self, ids: np.ndarray, px: np.ndarray) -> np.ndarray:
+        """(M,) m: each track's depth in the previous frame, else its neighbours' there."""
         found, idx = self._lookup(ids)
-        return np.where(found, self._prev.depth[idx], np.nan) if found.any() else np.full(len(ids), np.nan)
+        if not found.any():
+            return np.full(len(ids), np.nan)
+        return neighbour_depths(px, np.where(found, self._prev.depth[idx], np.nan),
+                                self.cfg.stereo_guess_neighbours)
 
     def _right_velocity(self, mono: MonoTracks, right_uv: np.ndarray) -> np.ndarray:
         found, idx = self._lookup(mono.ids)

@@ -56,6 +56,27 @@ def triangulate_depth(T_0_1: np.ndarray, uv0: np.ndarray, uv1: np.ndarray) -> np
         return (c * r0 - b * r1) / det
 
 
+def neighbour_depths(px: np.ndarray, depth: np.ndarray, k: int) -> np.ndarray:
+    """``depth`` (M,) with each NaN row replaced by the median depth of its ``k`` nearest
+    rows (pixel distance in ``px`` (M, 2)) that have one; unchanged when none has.
+
+    A stereo LK start for a feature without a match of its own: the scene's depth
+    varies little between neighbouring features, and a start at the wrong disparity
+    fails the match (real MH_01 at 0.7-1.7 m from the wall: a 3-m guess matched 30 %).
+    """
+    known = np.isfinite(depth)
+    miss = np.flatnonzero(~known)
+    if k <= 0 or miss.size == 0 or not known.any():
+        return depth
+    src_px, src_d = px[known], depth[known]
+    kk = min(int(k), src_d.size)
+    d2 = np.sum((px[miss, None, :] - src_px[None, :, :]) ** 2, axis=2)
+    nearest = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
+    out = depth.copy()
+    out[miss] = np.median(src_d[nearest], axis=1)
+    return out
+
+
 class StereoMatcher:
     """Match cam0 features into cam1 with LK, a forward-backward and an epipolar check."""
 
