@@ -80,7 +80,8 @@ def test_worker_process_front_end_is_identical(sim_stereo):
     files = _image_files(d, True, len(stamps))
     local = ImageStage(*args)
     expected = [local(p) for p in packets(d.imu, stamps, 0.0, image_files=files)]
-    got = list(overlapped(ImageStage, args, packets(d.imu, stamps, 0.0, image_files=files), depth=3))
+    got = list(overlapped(ImageStage, args, packets(d.imu, stamps, 0.0, image_files=files), depth=3,
+                          nice=19))   # the worker matches stereo in a thread (ImageStage.submit)
     assert [p.index for p in got] == [p.index for p in expected]
     for a, b in zip(got, expected):
         for name in ("ids", "uv", "velocity", "row", "right_uv", "right_velocity"):
@@ -89,7 +90,8 @@ def test_worker_process_front_end_is_identical(sim_stereo):
 
 
 def test_worker_process_reports_bad_image(sim_stereo, tmp_path):
-    """A missing image inside the worker surfaces as the same one-line DataError."""
+    """A missing image inside the worker surfaces as the same one-line DataError, after
+    the results of the packets before it (the stereo thread's included)."""
     from vio.errors import DataError
     from vio.overlap import overlapped
     from vio.run import _image_files
@@ -101,5 +103,8 @@ def test_worker_process_reports_bad_image(sim_stereo, tmp_path):
     files[4] = (tmp_path / "gone.png", files[4][1])
     it = overlapped(ImageStage, (d.cam0.calib, d.cam1.calib, None),
                     packets(d.imu, stamps, 0.0, image_files=files))
+    got = []
     with pytest.raises(DataError, match=r"gone\.png: image missing or unreadable"):
-        list(it)
+        for pkt in it:
+            got.append(pkt)
+    assert [p.index for p in got] == [0, 1, 2, 3] and all(len(p.features.ids) for p in got)

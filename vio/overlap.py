@@ -29,6 +29,7 @@ import sys
 import threading
 import traceback
 from collections import deque
+from concurrent.futures import Future
 from typing import IO, Any, Callable, Iterable, Iterator
 
 from vio.threads import one_blas_thread
@@ -128,12 +129,13 @@ def _reader(inp: IO[bytes], load: Callable[[Any], Any] | None, out: "queue.Queue
 
 
 def worker_main() -> None:
-    """Worker loop: read (factory, args), then packets until None; answer each with
+    """Worker loop: read (factory, args[, nice]), then packets until None; answer each with
     ("ok", packet) or ("error", (exception, traceback)) and stop at the first error.
     A reader thread receives the packets and runs the stage's ``load`` (if it has one:
     ``vio.tracking.ImageStage.load`` decodes the images) ahead of the stage: real MH_01
     stereo, whose worker bounds the throughput, 2.0-2.1 -> 2.4x real time (wall 7.95 ->
-    7.1 s), hybrid 1.8 -> 1.9x, mono unchanged (its backend bounds it); same output."""
+    7.1 s), hybrid 1.8 -> 1.9x, mono unchanged (its backend bounds it); same output.
+    A stage with ``submit`` runs pipelined (``_pipelined``)."""
     out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     sys.stdout = sys.stderr          # stray prints must not corrupt the protocol
     inp = sys.stdin.buffer
@@ -142,13 +144,19 @@ def worker_main() -> None:
         cv2.setNumThreads(1)         # two cores: leave the other one to the backend
         from vio.memory import tune_heap
         tune_heap()                  # per-frame images and pyramids: reuse, not page faults
-        factory, args = _recv(inp)
+        factory, args, *rest = _recv(inp)
+        if rest and rest[0]:
+            os.nice(int(rest[0]))    # ``overlapped``'s ``nice``
         stage = factory(*args)
     except BaseException as exc:  # noqa: BLE001 - reported to the main process
         _send(out, ("error", _describe(exc)))
         return
     ready: queue.Queue = queue.Queue()
     threading.Thread(target=_reader, args=(inp, getattr(stage, "load", None), ready), daemon=True).start()
+    submit = getattr(stage, "submit", None)
+    if submit is not None:
+        _pipelined(submit, ready, out)
+        return
     while True:
         item = ready.get()
         if item is None:
@@ -163,22 +171,61 @@ def worker_main() -> None:
             return
 
 
+def _pipelined(submit: Callable[[Any], Future], ready: "queue.Queue", out: IO[bytes]) -> None:
+    """Worker loop for a stage with ``submit`` (``vio.tracking.ImageStage``: the stereo
+    match of frame k in a thread while frame k+1 is tracked): a sender thread resolves
+    the futures in packet order and answers as ``worker_main`` does, stopping at the
+    first error; this thread stops submitting then."""
+    futures: queue.Queue = queue.Queue()
+    failed = threading.Event()
+
+    def sender() -> None:
+        while (fut := futures.get()) is not None:
+            try:
+                _send(out, ("ok", fut.result()))
+            except BaseException as exc:  # noqa: BLE001 - reported to the main process
+                _send(out, ("error", _describe(exc)))
+                failed.set()
+                return
+
+    thread = threading.Thread(target=sender, daemon=True)
+    thread.start()
+    while not failed.is_set():
+        item = ready.get()
+        if item is None:
+            break
+        pkt, exc = item
+        try:
+            if exc is not None:
+                raise exc
+            fut = submit(pkt)
+        except BaseException as exc:  # noqa: BLE001 - sent after the earlier results
+            fut = Future()
+            fut.set_exception(exc)
+        futures.put(fut)
+        if fut.done() and fut.exception() is not None:
+            break
+    futures.put(None)
+    thread.join()
+
+
 def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
                packets: Iterable[Any], depth: int = 16,
-               timeout_s: float = 120.0) -> Iterator[Any]:
+               timeout_s: float = 120.0, nice: int = 0) -> Iterator[Any]:
     """Yield ``factory(*args)(pkt)`` for every packet, computed in a worker process.
 
     ``factory`` (an importable callable) and ``args`` must be picklable, as packets
     are. At most ``depth`` packets are in flight (16: the worker keeps tracking through a
     keyframe update of the backend, ~150-250 ms or 5-8 frames in hybrid mode; with 4, real
     MH_01 hybrid took 16.7 instead of 16.3 s); ``timeout_s`` is the longest wait for one
-    result.
+    result. ``nice`` (0-19) lowers the worker's scheduling priority, so that on a busy
+    machine the consumer of its results runs first and the worker takes the idle time.
     """
     proc = _worker_process()
     pending: deque[int] = deque()
     source = iter(packets)
     try:
-        _send(proc.stdin, (factory, args))
+        _send(proc.stdin, (factory, args, nice))
         done = stopped = False
         while True:
             while not done and len(pending) < depth:

@@ -160,12 +160,12 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
             # the pipe and stall it: real MH_01 hybrid wall 15.9 -> 20.5 s when sent back;
             # decoding direct mode's images there cost 8.8 -> 10.6 s and +150 MB)
             from vio.overlap import overlapped
-            it = overlapped(ImageStage, args, it)
+            it = overlapped(ImageStage, args, it, nice=cfg.frontend.worker_nice)
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid", klt=not klt_worker)
     if not worker:
         return it, ImageStage(*args)
     from vio.overlap import overlapped
-    return overlapped(ImageStage, args, it), None
+    return overlapped(ImageStage, args, it, nice=cfg.frontend.worker_nice), None
 
 
 def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frames: int | None = None,

@@ -8,6 +8,7 @@ features with their cam1 matches (``FeatureFrame.right_uv``) for the backend.
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import gtsam
 import numpy as np
@@ -41,6 +42,7 @@ class ImageStage:
         self.frontend = Frontend(cam0, cam1, cfg)
         self._T_b_c = cam0.T_b_c.matrix()
         self._first = True
+        self._pool: ThreadPoolExecutor | None = None
 
     def load(self, pkt: FramePacket) -> FramePacket:
         """``pkt`` with its images decoded (``vio.overlap``'s worker runs this a packet
@@ -51,12 +53,32 @@ class ImageStage:
         return dataclasses.replace(pkt, images=tuple(read_image(p) for p in files))
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
+        return self._finish(*self._track(pkt))
+
+    def submit(self, pkt: FramePacket) -> Future:
+        """``self(pkt)`` as a future: cam0 is tracked now, the stereo match runs in this
+        stage's own thread (OpenCV releases the GIL), so frame k is matched while frame
+        k+1 is tracked. Results are those of ``self(pkt)``; resolve them in order."""
+        args = self._track(pkt)
+        if not self.stereo:
+            fut: Future = Future()
+            fut.set_result(self._finish(*args))
+            return fut
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="stereo")
+        return self._pool.submit(self._finish, *args)
+
+    def _track(self, pkt: FramePacket) -> tuple:
         imgs = self.load(pkt).images
         if not imgs:
             raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
         R = None if self._first else camera_rotation(gyro_rotation(pkt.imu), self._T_b_c)
         self._first = False
-        tf = self.frontend.process(pkt.t_ns, imgs[0], imgs[1] if self.stereo and len(imgs) > 1 else None, R)
+        img1 = imgs[1] if self.stereo and len(imgs) > 1 else None
+        return pkt, self.frontend.track(pkt.t_ns, imgs[0], R), img1
+
+    def _finish(self, pkt: FramePacket, mono, img1: np.ndarray | None) -> FramePacket:
+        tf = self.frontend.match(mono, img1)
         fr = tf.to_feature_frame(0)
         if self.stereo:
             fr = dataclasses.replace(fr, right_uv=np.asarray(tf.right_uv, float).copy(),

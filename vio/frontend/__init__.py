@@ -14,7 +14,7 @@ import numpy as np
 from vio.frontend.camera import Camera, camera_rotation, epipolar_distance, essential_from_pose
 from vio.frontend.config import FrontendConfig
 from vio.frontend.stereo import StereoMatch, StereoMatcher, neighbour_depths, triangulate_depth
-from vio.frontend.tracker import KltTracker, MonoTracks
+from vio.frontend.tracker import KltTracker, MonoTracks, Preprocess
 from vio.io.types import CameraCalib, FeatureFrame
 
 __all__ = ["Camera", "FrontendConfig", "Frontend", "KltTracker", "MonoTracks", "StereoMatch",
@@ -84,6 +84,7 @@ class Frontend:
         self.tracker = KltTracker(self.cam0, self.cfg)
         self.stereo = (StereoMatcher(self.cam0, self.cam1, self.cfg)
                        if self.cam1 is not None and self.cfg.stereo else None)
+        self._preprocess1 = Preprocess(self.cam1, self.cfg) if self.stereo is not None else None
         self._prev: TrackedFrame | None = None
 
     def process(self, t_ns: int, img0: np.ndarray, img1: np.ndarray | None = None,
@@ -94,11 +95,21 @@ class Frontend:
         prediction (see ``camera_rotation`` to build it from a gyro rotation).
         ``img1`` is ignored unless a cam1 was given and ``cfg.stereo`` is set.
         """
-        mono = self.tracker.track(t_ns, img0, R_prev_cur)
+        return self.match(self.track(t_ns, img0, R_prev_cur), img1)
+
+    def track(self, t_ns: int, img0: np.ndarray, R_prev_cur: np.ndarray | None = None) -> MonoTracks:
+        """The cam0 half of ``process``: KLT tracking and detection."""
+        return self.tracker.track(t_ns, img0, R_prev_cur)
+
+    def match(self, mono: MonoTracks, img1: np.ndarray | None = None) -> TrackedFrame:
+        """The cam1 half of ``process`` for ``track``'s result. It shares no state with
+        ``track`` (its own cam1 preprocessing, the previous frame's matches), so frame k's
+        ``match`` may run in another thread while frame k+1 is tracked; calls must come in
+        frame order."""
         m = len(mono.ids)
         right_uv, right_px, depth = np.full((m, 2), np.nan), np.full((m, 2), np.nan), np.full(m, np.nan)
         if self.stereo is not None and img1 is not None:
-            img1 = self.tracker.preprocess(img1, f"cam {self.cam1.calib.name} image at t={t_ns} ns")
+            img1 = self._preprocess1(img1, f"cam {self.cam1.calib.name} image at t={mono.t_ns} ns")
             match = self.stereo.match(mono.image, img1, mono.px, mono.uv,
                                       self._depth_guess(mono.ids, mono.px))
             right_uv, right_px, depth = match.right_uv, match.right_px, match.depth

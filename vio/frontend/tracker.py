@@ -158,21 +158,29 @@ class MonoTracks:
     image: np.ndarray
 
 
+class Preprocess:
+    """Validate and (optionally) CLAHE-equalise images of one camera. One per thread:
+    an OpenCV CLAHE object keeps working buffers between calls."""
+
+    def __init__(self, cam: Camera, cfg: FrontendConfig) -> None:
+        self.cam = cam
+        self._clahe = (cv2.createCLAHE(cfg.clahe_clip, (cfg.clahe_tiles, cfg.clahe_tiles))
+                       if cfg.clahe else None)
+
+    def __call__(self, img: np.ndarray, what: str) -> np.ndarray:
+        img = check_image(img, self.cam, what)
+        return self._clahe.apply(img) if self._clahe is not None else img
+
+
 class KltTracker:
     """Stateful monocular tracker for one camera (see module docstring)."""
 
     def __init__(self, cam: Camera, cfg: FrontendConfig) -> None:
         self.cam = cam
         self.cfg = cfg
-        self._clahe = (cv2.createCLAHE(cfg.clahe_clip, (cfg.clahe_tiles, cfg.clahe_tiles))
-                       if cfg.clahe else None)
+        self.preprocess = Preprocess(cam, cfg)
         self._next_id = 0
         self._prev: MonoTracks | None = None
-
-    def preprocess(self, img: np.ndarray, what: str) -> np.ndarray:
-        """Validate and (optionally) CLAHE-equalise an image of this camera."""
-        img = check_image(img, self.cam, what)
-        return self._clahe.apply(img) if self._clahe is not None else img
 
     def track(self, t_ns: int, img: np.ndarray, R_prev_cur: np.ndarray | None = None) -> MonoTracks:
         """Track into a new image (H, W) uint8 taken at ``t_ns``.
