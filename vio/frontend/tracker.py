@@ -40,23 +40,25 @@ def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np
     """Track pixels ``px_a`` (N, 2) from image a to b starting at ``guess_b`` (N, 2).
 
     Returns (px_b (N, 2) float64, ok (N,) bool). With ``fb_threshold_px`` the result
-    is tracked back to a and rejected when the round trip misses by more than that.
-    ``levels``: pyramid levels above full resolution (default ``cfg.lk_levels``).
+    is tracked back to a and rejected when the round trip misses by more than that; the
+    backward pass starts at ``px_a`` itself, so it searches ``cfg.lk_back_levels`` pyramid
+    levels only. ``levels``: pyramid levels above full resolution (default ``cfg.lk_levels``).
     """
     n = len(px_a)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     w = cfg.lk_window
-    kw = dict(winSize=(w, w), maxLevel=cfg.lk_levels if levels is None else int(levels),
-              flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    levels = cfg.lk_levels if levels is None else int(levels)
+    kw = dict(winSize=(w, w), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
                         cfg.lk_max_iter, cfg.lk_eps))
     p_a = np.ascontiguousarray(px_a, dtype=np.float32).reshape(-1, 1, 2)
     g_b = np.ascontiguousarray(guess_b, dtype=np.float32).reshape(-1, 1, 2)
-    p_b, st, _ = cv2.calcOpticalFlowPyrLK(img_a, img_b, p_a, g_b, **kw)
+    p_b, st, _ = cv2.calcOpticalFlowPyrLK(img_a, img_b, p_a, g_b, maxLevel=levels, **kw)
     ok = st.reshape(-1).astype(bool)
     if fb_threshold_px is not None:
-        back, st_back, _ = cv2.calcOpticalFlowPyrLK(img_b, img_a, p_b, p_a.copy(), **kw)
+        back, st_back, _ = cv2.calcOpticalFlowPyrLK(img_b, img_a, p_b, p_a.copy(),
+                                                    maxLevel=min(levels, cfg.lk_back_levels), **kw)
         err = np.linalg.norm((back - p_a).reshape(-1, 2), axis=1)
         ok &= st_back.reshape(-1).astype(bool) & (err <= fb_threshold_px)
     out = p_b.reshape(-1, 2).astype(np.float64)
