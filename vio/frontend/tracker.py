@@ -18,6 +18,7 @@ import numpy as np
 
 from vio.frontend.camera import Camera
 from vio.frontend.config import FrontendConfig
+from vio.frontend.corners import good_features
 
 log = logging.getLogger(__name__)
 
@@ -132,13 +133,11 @@ def spatial_mask(shape: tuple[int, int], px: np.ndarray, track_len: np.ndarray,
 
 
 def detect_corners(img: np.ndarray, mask: np.ndarray, n: int, cfg: FrontendConfig) -> np.ndarray:
-    """Up to ``n`` Shi-Tomasi corners (n, 2) px inside ``mask``."""
+    """Up to ``n`` Shi-Tomasi corners (n, 2) px inside ``mask``: ``cv2.goodFeaturesToTrack``'s
+    corners, computed near the mask's free pixels only (``vio.frontend.corners``)."""
     if n <= 0:
         return np.zeros((0, 2))
-    pts = cv2.goodFeaturesToTrack(img, maxCorners=int(n), qualityLevel=cfg.quality_level,
-                                  minDistance=float(cfg.min_dist_px), mask=mask,
-                                  blockSize=cfg.block_size)
-    return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(np.float64)
+    return good_features(img, mask, int(n), cfg.quality_level, float(cfg.min_dist_px), cfg.block_size)
 
 
 @dataclass(frozen=True)
