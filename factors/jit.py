@@ -9,8 +9,18 @@ try:
 
     def njit(fn):  # noqa: D103
         return _numba_njit(cache=True, nogil=True)(fn)
+
+    def njit_inline(fn):
+        """``njit`` for a small helper, inlined into its compiled callers at Numba's IR
+        level: LLVM does not always inline across Numba's function boundaries, and a
+        helper left as a call keeps its branches (``vio.io.png._paeth``: 0.97 -> 0.67 ms
+        an image once inlined, its choice compiled to selects)."""
+        return _numba_njit(cache=True, nogil=True, inline="always")(fn)
 except ImportError:  # pragma: no cover - without numba the kernels run as plain Python
     def njit(fn):  # noqa: D103
+        return fn
+
+    def njit_inline(fn):  # noqa: D103
         return fn
 
 
