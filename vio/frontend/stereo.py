@@ -115,7 +115,7 @@ class StereoMatcher:
         if cfg.stereo_gain_compensation:  # LK assumes brightness constancy across cameras
             img1 = cv2.convertScaleAbs(img1, alpha=float(img0.mean()) / max(float(img1.mean()), 1.0))
         px1, ok = lk_track(img0, img1, px0, guess, cfg, cfg.stereo_fb_threshold_px,
-                           cfg.stereo_lk_levels, cfg.stereo_back_levels)
+                           cfg.stereo_lk_levels, cfg.stereo_back_levels, cfg.stereo_lk_max_iter)
         ok &= self.cam1.in_image(px1, cfg.border_px)
         uv1 = np.full((m, 2), np.nan)
         uv1[ok] = self.cam1.undistort_px(px1[ok])

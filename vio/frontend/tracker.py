@@ -37,14 +37,16 @@ def check_image(img: np.ndarray, cam: Camera, what: str) -> np.ndarray:
 
 def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np.ndarray,
              cfg: FrontendConfig, fb_threshold_px: float | None,
-             levels: int | None = None, back_levels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+             levels: int | None = None, back_levels: int | None = None,
+             max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Track pixels ``px_a`` (N, 2) from image a to b starting at ``guess_b`` (N, 2).
 
     Returns (px_b (N, 2) float64, ok (N,) bool). With ``fb_threshold_px`` the result
     is tracked back to a and rejected when the round trip misses by more than that; the
     backward pass starts at ``px_a`` itself (as VINS-Fusion's), so it searches
     ``back_levels`` pyramid levels only (default ``cfg.lk_back_levels``). ``levels``:
-    pyramid levels above full resolution (default ``cfg.lk_levels``).
+    pyramid levels above full resolution (default ``cfg.lk_levels``); ``max_iter``: LK
+    iterations per level (default ``cfg.lk_max_iter``).
     """
     n = len(px_a)
     if n == 0:
@@ -54,7 +56,7 @@ def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np
     back_levels = cfg.lk_back_levels if back_levels is None else int(back_levels)
     kw = dict(winSize=(w, w), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
               criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
-                        cfg.lk_max_iter, cfg.lk_eps))
+                        cfg.lk_max_iter if max_iter is None else int(max_iter), cfg.lk_eps))
     p_a = np.ascontiguousarray(px_a, dtype=np.float32).reshape(-1, 1, 2)
     g_b = np.ascontiguousarray(guess_b, dtype=np.float32).reshape(-1, 1, 2)
     p_b, st, _ = cv2.calcOpticalFlowPyrLK(img_a, img_b, p_a, g_b, maxLevel=levels, **kw)
