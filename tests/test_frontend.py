@@ -316,3 +316,18 @@ def test_neighbour_guess_matches_more_at_close_range() -> None:
             assert err_px.max() <= 1.5 + 1e-9
         rate[k] = n_match / n_all
     assert rate[3] >= 1.4 * rate[0] and rate[3] >= 0.45, rate
+
+
+def test_spatial_mask_keeps_longest_tracks_apart() -> None:
+    from vio.frontend.tracker import spatial_mask
+    px = np.array([[100.0, 100.0], [110.0, 100.0], [300.5, 200.5], [-3.0, 50.0], [400.0, 300.0],
+                   [1.0, 1.0]])
+    track_len = np.array([2, 9, 5, 7, 5, 3])
+    keep, mask = spatial_mask((480, 752), px, track_len, 30, 2)
+    # longest first; 100,100 lies within 30 px of the longer 110,100; -3 is off the image and
+    # 1,1 inside the border; equal lengths keep their order
+    assert keep.tolist() == [1, 2, 4]
+    for x, y in ((110, 100), (300, 200), (400, 300)):      # 300.5, 200.5 rounds half to even
+        assert mask[y, x] == 0
+    assert mask[200, 331] == 255 and mask[200, 329] == 0   # the circle of radius 30 about x = 300
+    assert mask[:2].max() == 0 and mask[240, 751] == 0 and mask[240, 700] == 255

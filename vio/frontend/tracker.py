@@ -127,12 +127,14 @@ def spatial_mask(shape: tuple[int, int], px: np.ndarray, track_len: np.ndarray,
     mask = np.zeros((h, w), dtype=np.uint8)
     mask[border:h - border, border:w - border] = 255
     order = np.argsort(-track_len, kind="stable")
+    xy = np.rint(px).astype(np.int64).tolist()     # round half to even, as round()
     keep = []
-    for i in order:
-        x, y = int(round(px[i, 0])), int(round(px[i, 1]))
+    r = int(min_dist)
+    for i in order.tolist():
+        x, y = xy[i]
         if 0 <= x < w and 0 <= y < h and mask[y, x] == 255:
             keep.append(i)
-            cv2.circle(mask, (x, y), int(min_dist), 0, -1)
+            cv2.circle(mask, (x, y), r, 0, -1)
     return np.asarray(keep, dtype=np.int64), mask
 
 
