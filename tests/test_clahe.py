@@ -126,6 +126,9 @@ def test_one_instance_across_sizes_and_layouts(euroc_frames):
     _assert_same(euroc_frames[1][::2, ::3], 3.0, (8, 8), clahe)
     _assert_same(np.asfortranarray(euroc_frames[2][:75, :100]), 3.0, (8, 8), clahe)
     _assert_same(euroc_frames[3], 3.0, (8, 8), clahe)
+    frozen = euroc_frames[4].copy()
+    frozen.setflags(write=False)         # e.g. a ROS Image message's buffer
+    _assert_same(frozen, 3.0, (8, 8), clahe)
     assert np.array_equal(first, kept)
 
 

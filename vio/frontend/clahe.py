@@ -71,6 +71,8 @@ class Clahe:
             raise ValueError(f"Clahe.apply: expected a non-empty uint8 (H, W) image, got "
                              f"{img.dtype} {img.shape}")
         img = np.ascontiguousarray(img)
+        if not img.flags.writeable:   # Numba types a read-only array apart: one compiled version
+            img = img.copy()
         if img.shape != self._shape:
             self._layout = self._make_layout(*img.shape)
             self._shape = img.shape
