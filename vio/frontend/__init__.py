@@ -108,15 +108,16 @@ class Frontend:
         frame order."""
         m = len(mono.ids)
         right_uv, right_px, depth = np.full((m, 2), np.nan), np.full((m, 2), np.nan), np.full(m, np.nan)
+        found, idx = self._lookup(mono.ids)
         if self.stereo is not None and img1 is not None:
             img1 = self._preprocess1(img1, f"cam {self.cam1.calib.name} image at t={mono.t_ns} ns")
             match = self.stereo.match(mono.image, img1, mono.px, mono.uv,
-                                      self._depth_guess(mono.ids, mono.px))
+                                      self._depth_guess(found, idx, mono.px))
             right_uv, right_px, depth = match.right_uv, match.right_px, match.depth
         frame = TrackedFrame(
             t_ns=mono.t_ns, ids=mono.ids, uv=mono.uv, px=mono.px, velocity=mono.velocity,
-            row=mono.px[:, 1].copy(), track_len=mono.track_len, right_uv=right_uv,
-            right_px=right_px, right_velocity=self._right_velocity(mono, right_uv), depth=depth)
+            row=mono.px[:, 1].copy(), track_len=mono.track_len, right_uv=right_uv, right_px=right_px,
+            right_velocity=self._right_velocity(mono.t_ns, found, idx, right_uv), depth=depth)
         self._prev = frame
         return frame
 
@@ -130,20 +131,22 @@ class Frontend:
         idx = order[pos]
         return prev.ids[idx] == ids, idx
 
-    def _depth_guess(self, ids: np.ndarray, px: np.ndarray) -> np.ndarray:
-        """(M,) m: each track's depth in the previous frame, else its neighbours' there."""
-        found, idx = self._lookup(ids)
+    def _depth_guess(self, found: np.ndarray, idx: np.ndarray, px: np.ndarray) -> np.ndarray:
+        """(M,) m: each track's depth in the previous frame (``_lookup``'s rows), else its
+        neighbours' there."""
         if not found.any():
-            return np.full(len(ids), np.nan)
+            return np.full(len(found), np.nan)
         return neighbour_depths(px, np.where(found, self._prev.depth[idx], np.nan),
                                 self.cfg.stereo_guess_neighbours)
 
-    def _right_velocity(self, mono: MonoTracks, right_uv: np.ndarray) -> np.ndarray:
-        found, idx = self._lookup(mono.ids)
+    def _right_velocity(self, t_ns: int, found: np.ndarray, idx: np.ndarray,
+                        right_uv: np.ndarray) -> np.ndarray:
+        """(M, 2) cam1 velocity (1/s) from the previous frame (``_lookup``'s rows); 0 where
+        the id or either match is missing."""
         vel = np.zeros_like(right_uv)
         if not found.any():
             return vel
-        dt = (mono.t_ns - self._prev.t_ns) * 1e-9
+        dt = (t_ns - self._prev.t_ns) * 1e-9
         diff = (right_uv - self._prev.right_uv[idx]) / dt
         ok = found & np.all(np.isfinite(diff), axis=1)
         vel[ok] = diff[ok]
