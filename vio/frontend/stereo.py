@@ -6,7 +6,7 @@ cam1 in cam0 (``inv(T_b_c0) @ T_b_c1``). Output depths are z in cam0, metres.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -88,6 +88,10 @@ class StereoMatcher:
         if np.linalg.norm(self.T_0_1[:3, 3]) < 1e-6:
             raise ValueError(f"cameras {cam0.calib.name} and {cam1.calib.name} have no "
                              "baseline: stereo matching needs distinct centres")
+        # the LK options of the match: its own levels and iteration limit (lk_track reads
+        # the temporal tracker's names)
+        self._lk_cfg = replace(cfg, lk_levels=cfg.stereo_lk_levels, lk_back_levels=cfg.stereo_back_levels,
+                              lk_max_iter=cfg.stereo_lk_max_iter)
         # inverse depth (1/m) that one epipolar tolerance of disparity amounts to
         self._inv_depth_tol = cfg.stereo_epipolar_px / (cam1.fx * np.linalg.norm(self.T_0_1[:3, 3]))
 
@@ -114,8 +118,7 @@ class StereoMatcher:
         guess = np.where(self.cam1.in_image(guess)[:, None], guess, px0)
         if cfg.stereo_gain_compensation:  # LK assumes brightness constancy across cameras
             img1 = cv2.convertScaleAbs(img1, alpha=float(img0.mean()) / max(float(img1.mean()), 1.0))
-        px1, ok = lk_track(img0, img1, px0, guess, cfg, cfg.stereo_fb_threshold_px,
-                           cfg.stereo_lk_levels, cfg.stereo_back_levels, cfg.stereo_lk_max_iter)
+        px1, ok = lk_track(img0, img1, px0, guess, self._lk_cfg, cfg.stereo_fb_threshold_px)
         ok &= self.cam1.in_image(px1, cfg.border_px)
         uv1 = np.full((m, 2), np.nan)
         uv1[ok] = self.cam1.undistort_px(px1[ok])

@@ -37,34 +37,29 @@ def check_image(img: np.ndarray, cam: Camera, what: str) -> np.ndarray:
 
 
 def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np.ndarray,
-             cfg: FrontendConfig, fb_threshold_px: float | None,
-             levels: int | None = None, back_levels: int | None = None,
-             max_iter: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+             cfg: FrontendConfig, fb_threshold_px: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Track pixels ``px_a`` (N, 2) from image a to b starting at ``guess_b`` (N, 2).
 
     Returns (px_b (N, 2) float64, ok (N,) bool). With ``fb_threshold_px`` the result
     is tracked back to a and rejected when the round trip misses by more than that; the
     backward pass starts at ``px_a`` itself (as VINS-Fusion's), so it searches
-    ``back_levels`` pyramid levels only (default ``cfg.lk_back_levels``). ``levels``:
-    pyramid levels above full resolution (default ``cfg.lk_levels``); ``max_iter``: LK
-    iterations per level (default ``cfg.lk_max_iter``).
+    ``cfg.lk_back_levels`` pyramid levels only; the forward pass ``cfg.lk_levels`` above
+    full resolution, ``cfg.lk_max_iter`` iterations a level (the stereo match passes its
+    own, ``StereoMatcher``).
     """
     n = len(px_a)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool)
     w = cfg.lk_window
-    levels = cfg.lk_levels if levels is None else int(levels)
-    back_levels = cfg.lk_back_levels if back_levels is None else int(back_levels)
     kw = dict(winSize=(w, w), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
-                        cfg.lk_max_iter if max_iter is None else int(max_iter), cfg.lk_eps))
+              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, cfg.lk_max_iter, cfg.lk_eps))
     p_a = np.ascontiguousarray(px_a, dtype=np.float32).reshape(-1, 1, 2)
     g_b = np.ascontiguousarray(guess_b, dtype=np.float32).reshape(-1, 1, 2)
-    p_b, st, _ = cv2.calcOpticalFlowPyrLK(img_a, img_b, p_a, g_b, maxLevel=levels, **kw)
+    p_b, st, _ = cv2.calcOpticalFlowPyrLK(img_a, img_b, p_a, g_b, maxLevel=cfg.lk_levels, **kw)
     ok = st.reshape(-1).astype(bool)
     if fb_threshold_px is not None:
         back, st_back, _ = cv2.calcOpticalFlowPyrLK(img_b, img_a, p_b, p_a.copy(),
-                                                    maxLevel=min(levels, back_levels), **kw)
+                                                    maxLevel=min(cfg.lk_levels, cfg.lk_back_levels), **kw)
         err = np.linalg.norm((back - p_a).reshape(-1, 2), axis=1)
         ok &= st_back.reshape(-1).astype(bool) & (err <= fb_threshold_px)
     out = p_b.reshape(-1, 2).astype(np.float64)
