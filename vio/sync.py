@@ -205,17 +205,7 @@ class Synchronizer:
         return SyncResult(SyncStatus.READY, pkt)
 
     def _segment(self, t0: int, t1: int) -> ImuData:
-        ts = self._t
-        i0 = int(np.searchsorted(ts, t0, side="right")) - 1
-        i1 = int(np.searchsorted(ts, t1, side="left")) + 1
-        ts, w, a = ts[max(i0, 0):i1], self._w[max(i0, 0):i1], self._a[max(i0, 0):i1]
-        inner = ts[(ts > t0) & (ts < t1)]
-        stamps = np.concatenate([[t0], inner, [t1]]) if t1 > t0 else np.array([t1])
-        tf = (ts - ts[0]).astype(np.float64)
-        sf = (stamps - ts[0]).astype(np.float64)
-        gyro = np.stack([np.interp(sf, tf, w[:, k]) for k in range(3)], axis=1)
-        acc = np.stack([np.interp(sf, tf, a[:, k]) for k in range(3)], axis=1)
-        return ImuData(stamps.astype(np.int64), gyro, acc)
+        return ImuData(self._t, self._w, self._a).segment(t0, t1)
 
     def _gaps(self, t0: int, t1: int) -> tuple[tuple[int, int], ...]:
         """The IMU gaps overlapping [t0, t1] (each logged once)."""

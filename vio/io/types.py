@@ -88,6 +88,22 @@ class ImuData:
         i1 = int(np.searchsorted(self.t_ns, t1_ns, side="right"))
         return ImuData(self.t_ns[i0:i1], self.gyro[i0:i1], self.accel[i0:i1])
 
+    def segment(self, t0_ns: int, t1_ns: int) -> "ImuData":
+        """The readings on ``[t0_ns, t1_ns]`` with both endpoints linearly interpolated
+        (the single reading at ``t1_ns`` when ``t1_ns <= t0_ns``); the interval must lie
+        inside the samples' span."""
+        ts = self.t_ns
+        i0 = max(int(np.searchsorted(ts, t0_ns, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(ts, t1_ns, side="left")) + 1
+        ts, w, a = ts[i0:i1], self.gyro[i0:i1], self.accel[i0:i1]
+        inner = ts[(ts > t0_ns) & (ts < t1_ns)]
+        stamps = np.concatenate([[t0_ns], inner, [t1_ns]]) if t1_ns > t0_ns else np.array([t1_ns])
+        tf = (ts - ts[0]).astype(np.float64)
+        sf = (stamps - ts[0]).astype(np.float64)
+        gyro = np.stack([np.interp(sf, tf, w[:, k]) for k in range(3)], axis=1)
+        acc = np.stack([np.interp(sf, tf, a[:, k]) for k in range(3)], axis=1)
+        return ImuData(stamps.astype(np.int64), gyro, acc)
+
 
 @dataclass(frozen=True)
 class GroundTruth:
