@@ -10,10 +10,13 @@ Targets: ATE <= 0.2% of the path, initialized within 1.5 s. Asserts nothing.
 
     python benchmarks/bench_midflight.py [--seconds 30] [--seed 1] [--config FILE]
                                          [--runs MH_05_difficult@40,V2_01_easy@20] [--noise-px 0.7]
+                                         [--td-ms 5]
 
 ``--config`` overrides the pipeline defaults (e.g. ``backend: {refine: {enabled: true}}``
 for the visual-inertial BA of ``vio.backend.viba``: measured figures in
-``vio.backend.scale_refine.RefineConfig``). ``--noise-px``: the generator's pixel noise;
+``vio.backend.scale_refine.RefineConfig``). ``--td-ms``: the generated camera's offset (the
+sync layer stays at 0; the dynamic initialization's td search, ``vio.backend.td_init``,
+must find larger ones). ``--noise-px``: the generator's pixel noise;
 the smoother's shortness grows faster than the noise (issue 16, MH_04@40 at b32d31c: scale
 column 1.005 / 1.020 / 1.125 at 0 / 0.7 / 1.4 px, ATE 0.126 / 0.378 / 2.20%; at 1.4 px
 single runs are erratic, any setting changed moves it within 1.03-1.09). Generated sets
@@ -46,12 +49,14 @@ RUNS = ("MH_03_medium@50,MH_04_difficult@40,MH_05_difficult@40,MH_05_difficult@7
         "V1_02_medium@30,V2_01_easy@20,V2_02_medium@25")
 
 
-def _dataset(seq: str, start: float, seconds: float, seed: int, noise_px: float = 0.7) -> Path:
+def _dataset(seq: str, start: float, seconds: float, seed: int, noise_px: float = 0.7,
+             td_s: float = TrackGenConfig.td_s) -> Path:
     tag = "" if noise_px == TrackGenConfig.noise_px else f"_{noise_px:g}px"
+    tag += "" if td_s == TrackGenConfig.td_s else f"_td{td_s * 1e3:g}ms"
     out = Path(tempfile.gettempdir()) / f"vio_midflight_{seq}_{start:g}_{seconds:g}_{seed}{tag}"
     if not (out / "mav0" / "cam0" / "features.csv").exists():
         generate_tracks(GT_DIR / seq, out, TrackGenConfig(start_s=start, duration_s=seconds, seed=seed,
-                                                          noise_px=noise_px))
+                                                          noise_px=noise_px, td_s=td_s))
     return out
 
 
@@ -62,13 +67,15 @@ def main() -> None:
     ap.add_argument("--config", type=Path, default=None)
     ap.add_argument("--runs", default=RUNS)
     ap.add_argument("--noise-px", type=float, default=TrackGenConfig.noise_px)
+    ap.add_argument("--td-ms", type=float, default=TrackGenConfig.td_s * 1e3,
+                    help="the generated camera's true offset (ms); the sync layer stays at 0")
     a = ap.parse_args()
     cfg = load_config(a.config, mode="features") if a.config else default_config("features")
     print(f"{'excerpt':22s} {'ATE m':>7s} {'Sim3 m':>7s} {'path m':>7s} {'ATE %':>6s} "
           f"{'scale':>6s} {'init s':>6s} {'pose s':>6s} {'restarts':>8s} {'wall s':>6s}")
     for spec in a.runs.split(","):
         seq, start = spec.split("@")
-        data = load_euroc(_dataset(seq, float(start), a.seconds, a.seed, a.noise_px))
+        data = load_euroc(_dataset(seq, float(start), a.seconds, a.seed, a.noise_px, a.td_ms * 1e-3))
         t0 = time.perf_counter()
         res = run_dataset(data, cfg, mode="features")
         wall = time.perf_counter() - t0

@@ -23,6 +23,26 @@ class KeyframeConfig:
 
 
 @dataclass(frozen=True)
+class TdSearchConfig:
+    """Search for the camera-IMU offset at a dynamic initialization
+    (``vio.backend.td_init``). ``search_s``:
+    half-width of the searched interval (s; 0 turns the search off), ``step_s`` its grid
+    step; ``tol_deg``: a pair whose rotation residual exceeds it counts as an outlier;
+    ``min_pairs``: fewest keyframe pairs with IMU over the whole interval; ``min_gain``,
+    ``max_sigma_s``: when a found remainder is applied; a weaker one (cost drop at least
+    ``try_gain`` residual variances) is tried when the alignment without it is refused,
+    and kept if the alignment's checks pass."""
+
+    search_s: float = 0.05
+    step_s: float = 0.0025
+    tol_deg: float = 1.5
+    min_pairs: int = 8
+    min_gain: float = 25.0
+    max_sigma_s: float = 0.003
+    try_gain: float = 9.0
+
+
+@dataclass(frozen=True)
 class DynamicInitConfig:
     """Dynamic initialization (visual-inertial alignment, ``vio.backend.dynamic_init``)
     on ``window_s`` of keyframes every ``step_s``, using the ``max_tracks`` longest
@@ -76,6 +96,7 @@ class DynamicInitConfig:
     max_scale_sigma: float = 0.2
     visual_gyro_bias_sigma: float = 0.01
     min_rotation_pairs: int = 3
+    td: TdSearchConfig = field(default_factory=TdSearchConfig)
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,7 @@ zero yaw; the pipeline then replays the window through the estimator.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -51,6 +51,7 @@ from factors.robust import RobustKernel
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.gyro_init import robust_gyro_bias, window_rotations
 from vio.backend.init import InitialState, gravity_aligned_rotation
+from vio.backend.td_init import search_td, shift_state
 from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 from vio.backend.vi_align import (AlignProblem, ViSolution, WindowObs, chain_increments, excitation,
@@ -65,12 +66,14 @@ NAN = float("nan")
 
 @dataclass(frozen=True)
 class InitWindow:
-    """Keyframes of the window: stamps (K,), features per keyframe, and the IMU
-    segments between consecutive keyframes (K-1)."""
+    """Keyframes of the window: stamps (K,), features per keyframe, the IMU segments
+    between consecutive keyframes (K-1) and all buffered IMU (``imu_all``, beyond the
+    first and last keyframes where the buffer reaches: the td search shifts the cuts)."""
 
     t_ns: tuple[int, ...]
     features: tuple[FeatureFrame, ...]
     imu: tuple[ImuData, ...]
+    imu_all: ImuData | None = None
 
 
 @dataclass(frozen=True)
@@ -110,7 +113,17 @@ def init_window(packets: list, step_s: float) -> InitWindow:
     empty = FeatureFrame(0, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
     return InitWindow(tuple(p.t_ns for p in chosen),
                       tuple(p.features if p.features is not None else empty for p in chosen),
-                      tuple(segs))
+                      tuple(segs), concat([p.imu for p in packets]))
+
+
+def retime(win: InitWindow, delta_s: float) -> InitWindow:
+    """``win`` with every keyframe ``delta_s`` later in the IMU clock (the IMU re-cut from
+    ``imu_all``); keyframes whose shifted time the IMU does not reach are dropped."""
+    imu, d = win.imu_all, int(round(delta_s * 1e9))
+    keep = [k for k, t in enumerate(win.t_ns) if imu.t_ns[0] <= t + d <= imu.t_ns[-1]]
+    t = [win.t_ns[k] + d for k in keep]
+    return InitWindow(tuple(t), tuple(win.features[k] for k in keep),
+                      tuple(imu.segment(a, b) for a, b in zip(t[:-1], t[1:])), imu)
 
 
 def _batch_refine(cam: CameraCalib, cfg: BackendConfig, pims: list, vi: ViSolution, obs: WindowObs,
@@ -216,19 +229,61 @@ def _agreement(est: gtsam.Values, vi: ViSolution, g_norm: float) -> tuple[float,
 
 def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendConfig
           ) -> AlignResult:
-    """Estimate the first keyframe's state from a moving window (see module docstring)."""
+    """Estimate the first keyframe's state from a moving window (see module docstring),
+    the camera-IMU offset's remainder first (``vio.backend.td_init``): when one is found,
+    the window is aligned at the shifted frame times and the state carried back to the
+    first keyframe's packet time, with the remainder as ``InitialState.td_s``."""
+    dc = cfg.init.dynamic
+    params = combined_params(imu_calib, cfg.imu)
+    pims = preintegrate_window(win, params)
+    rots = window_rotations(win.features, cam.T_b_c, cam.intrinsics[0])
+    bg, agree = robust_gyro_bias(pims, rots, 3.0 * dc.gyro_bias_sigma)
+    if dc.td.search_s <= 0 or win.imu_all is None:
+        return _align(win, cam, cfg, params, pims, rots, bg, agree)
+    found = search_td(win.imu_all, win.t_ns, rots, bg, dc.td)
+    log.debug("td search: best %.1f ms, sigma %.1f ms, gain %.1f, %d of %d pairs", found.best_s * 1e3,
+              found.sigma_s * 1e3, found.gain, found.n_inliers, found.n_pairs)
+    if found.td_s != 0.0:
+        return _align_shifted(win, found.td_s, cam, cfg, params, rots)
+    res = _align(win, cam, cfg, params, pims, rots, bg, agree)
+    if res.ok or found.best_s == 0.0 or not found.gain >= dc.td.try_gain:
+        return res
+    # a weaker candidate: the alignment's own checks decide
+    alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
+    return alt if alt.ok else res
+
+
+def _align_shifted(win: InitWindow, td_s: float, cam: CameraCalib, cfg: BackendConfig, params,
+                   rots: list) -> AlignResult:
+    """:func:`_align` with the keyframes ``td_s`` later in the IMU clock, the state carried
+    back to the first keyframe's packet time (``rots``: ``win``'s visual rotations)."""
+    moved = retime(win, td_s)
+    k0 = 0 if moved.t_ns[0] == win.t_ns[0] + int(round(td_s * 1e9)) else 1
+    rots = [(i - k0, j - k0, R) for i, j, R in rots if i >= k0 and j - k0 < len(moved.t_ns)]
+    pims = preintegrate_window(moved, params)
+    bg, agree = robust_gyro_bias(pims, rots, 3.0 * cfg.init.dynamic.gyro_bias_sigma)
+    res = _align(moved, cam, cfg, params, pims, rots, bg, agree)
+    if not res.ok:
+        return replace(res, reason=f"{res.reason} (at a td remainder of {td_s * 1e3:.1f} ms)")
+    st = res.state
+    T, v = shift_state(st.T_w_b, st.v_w, st.bias, win.imu_all, moved.t_ns[0], win.t_ns[0], params)
+    log.info("dynamic initialization at a td remainder of %.1f ms", td_s * 1e3)
+    return replace(res, state=replace(st, t_ns=win.t_ns[0], T_w_b=T, v_w=v, td_s=td_s))
+
+
+def _align(win: InitWindow, cam: CameraCalib, cfg: BackendConfig, params, pims: list, rots: list,
+           bg: np.ndarray, agree: list) -> AlignResult:
+    """:func:`align` at the window's frame times (``pims`` its preintegrations, ``rots``
+    its visual rotations, ``bg`` / ``agree`` the gyro bias they give and the pairs
+    agreeing with it)."""
     ic = cfg.init
     tracks = window_tracks(win, max_tracks=ic.dynamic.max_tracks)
     if len(tracks) < ic.dynamic.min_landmarks:
         return _reject(f"only {len(tracks)} landmarks seen in >= 3 keyframes")
-    params = combined_params(imu_calib, cfg.imu)
     gravity, g_norm = np.asarray(params.n_gravity, float), cfg.imu.gravity
-    pims = preintegrate_window(win, params)
     obs = window_observations(win, tracks)
     fx = cam.intrinsics[0]
     prob = AlignProblem(obs, pims, cam, gravity, ic)
-    rots = window_rotations(win.features, cam.T_b_c, fx)
-    bg, agree = robust_gyro_bias(pims, rots, 3.0 * ic.dynamic.gyro_bias_sigma)
     if len(agree) >= ic.dynamic.min_rotation_pairs:
         prob.bg0, prob.bg_sigma = bg, ic.dynamic.visual_gyro_bias_sigma
     vi = vi_align(prob, ic, cfg.vision.outlier_px / fx, cfg.vision.pixel_sigma / fx)

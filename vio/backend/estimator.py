@@ -137,9 +137,10 @@ class Estimator:
 
     def initialize(self, state: InitialState, T_b_c: gtsam.Pose3 | None = None,
                    td_s: float | None = None) -> None:
-        """Start the window at ``state`` (keyframe 0)."""
-        self._restart(0, state, self.cam.T_b_c if T_b_c is None else T_b_c,
-                      self.td0 if td_s is None else td_s, None)
+        """Start the window at ``state`` (keyframe 0); td: ``td_s``, else the state's
+        (an initializer's finding), else the residual prior mean."""
+        td = td_s if td_s is not None else (state.td_s if state.td_s is not None else self.td0)
+        self._restart(0, state, self.cam.T_b_c if T_b_c is None else T_b_c, td, None)
         if state.method == "static":    # a still start: its images carry no timing information
             self.still_kf.add(0)
 

@@ -23,7 +23,8 @@ class InitialState:
     """The first keyframe's state: ``T_w_b`` (yaw 0, gravity along -z of the world),
     ``v_w`` m/s, IMU bias, and how it was found. ``rp_sigma`` (rad) / ``vel_sigma``
     (m/s): the initializer's own roll-pitch / velocity prior sigmas (None: the
-    ``InitConfig`` defaults)."""
+    ``InitConfig`` defaults); ``td_s``: the camera-IMU offset beyond the sync layer's that
+    the initializer found (s; None: none, the estimator's own prior mean)."""
 
     t_ns: int
     T_w_b: gtsam.Pose3
@@ -32,6 +33,7 @@ class InitialState:
     method: str
     rp_sigma: float | None = None
     vel_sigma: float | None = None
+    td_s: float | None = None
 
 
 @dataclass(frozen=True)
