@@ -57,3 +57,27 @@ def test_broken_packet_stream_is_reported_not_a_hang():
     with pytest.raises(ValueError, match="corrupt packet stream"):
         list(overlapped(operator.attrgetter, ("index",), pkts, depth=4, timeout_s=30.0))
     assert time.perf_counter() - t0 < 20.0
+
+
+def test_prestarted_worker_is_taken_by_the_next_run_and_an_unused_one_stopped():
+    """``prestart`` (``vio run`` calls it before its own imports) leaves a worker that has
+    already imported its modules; ``overlapped`` takes that one, with the same results,
+    and a prestarted worker nobody takes is stopped at exit."""
+    from vio import overlap
+    overlap.prestart(("json",))
+    proc = overlap._PRESTARTED[0]
+    got = list(overlapped(operator.attrgetter, ("index",), (SimpleNamespace(index=i) for i in range(3)),
+                          timeout_s=10.0))
+    assert got == [0, 1, 2] and not overlap._PRESTARTED and proc.poll() is not None
+    overlap.prestart(("no_such_module_here",))   # its import fails: it reports and exits
+    proc = overlap._PRESTARTED[0]
+    overlap._stop_prestarted()
+    assert not overlap._PRESTARTED and proc.poll() is not None
+
+
+def test_image_stage_warm_up_tracks_its_synthetic_pair():
+    """``vio.tracking.warm_up`` (run by a prestarted worker) goes through the whole stereo
+    front end: a change of the front end's API must not turn it into a silent no-op
+    (``_preload`` only reports a failing warm-up)."""
+    from vio import tracking
+    assert tracking.warm_up() is None

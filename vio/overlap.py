@@ -18,6 +18,8 @@ in the main process with the same one-line message.
 
 from __future__ import annotations
 
+import atexit
+import importlib
 import logging
 import os
 import pickle
@@ -68,15 +70,35 @@ def _read_exact(stream: IO[bytes], n: int) -> bytes:
     return bytes(buf)
 
 
-def _worker_process() -> subprocess.Popen:
-    """``python -m vio.overlap`` with unbuffered pipes: the parent waits for replies with
-    ``select`` on the pipe, which cannot see bytes a buffered reader has already pulled
-    in (two replies read at once left the second one unseen: ``LivePipeline.close``
-    then waited forever, and ``overlapped`` would time out on its last result)."""
-    proc = subprocess.Popen([sys.executable, "-m", "vio.overlap"], stdin=subprocess.PIPE,
+def _worker_process(preload: tuple[str, ...] = ()) -> subprocess.Popen:
+    """``python -m vio.overlap [MODULE ...]`` with unbuffered pipes: the parent waits for
+    replies with ``select`` on the pipe, which cannot see bytes a buffered reader has
+    already pulled in (two replies read at once left the second one unseen:
+    ``LivePipeline.close`` then waited forever, and ``overlapped`` would time out on its
+    last result). The worker imports the ``preload`` modules before it reads its stage."""
+    proc = subprocess.Popen([sys.executable, "-m", "vio.overlap", *preload], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, bufsize=0, env=one_blas_thread(dict(os.environ)))
     _widen(proc.stdout)
     return proc
+
+
+_PRESTARTED: list[subprocess.Popen] = []
+
+
+def prestart(preload: tuple[str, ...] = ("vio.tracking",)) -> None:
+    """Start the next :func:`overlapped` call's worker now, importing ``preload`` (the
+    image stage's modules: OpenCV, Numba and, through ``vio.tracking.warm_up``, its
+    compiled kernels): its start-up then overlaps the
+    caller's own (imports, the dataset's listing, the pipeline's construction) instead of
+    delaying the first frame. A worker never taken is stopped at exit."""
+    if not _PRESTARTED:
+        _PRESTARTED.append(_worker_process(preload))
+        atexit.register(_stop_prestarted)
+
+
+def _stop_prestarted() -> None:
+    while _PRESTARTED:
+        _shutdown(_PRESTARTED.pop())
 
 
 def _widen(pipe: IO[bytes], size: int = 1 << 20) -> None:
@@ -128,6 +150,18 @@ def _reader(inp: IO[bytes], load: Callable[[Any], Any] | None, out: "queue.Queue
             out.put((pkt, exc))
 
 
+def _preload(name: str) -> None:
+    """Import module ``name`` and run its ``warm_up()`` if it has one (loading compiled
+    kernels); a failing warm-up is only reported: the stage itself decides."""
+    module = importlib.import_module(name)
+    warm = getattr(module, "warm_up", None)
+    if warm is not None:
+        try:
+            warm()
+        except Exception as exc:  # noqa: BLE001 - the run itself reports real failures
+            print(f"vio.overlap: {name}.warm_up failed: {exc}", file=sys.stderr)
+
+
 def worker_main() -> None:
     """Worker loop: read (factory, args[, nice]), then packets until None; answer each with
     ("ok", packet) or ("error", (exception, traceback)) and stop at the first error.
@@ -144,6 +178,8 @@ def worker_main() -> None:
         cv2.setNumThreads(1)         # two cores: leave the other one to the backend
         from vio.memory import tune_heap
         tune_heap()                  # per-frame images and pyramids: reuse, not page faults
+        for name in sys.argv[1:]:    # ``prestart``'s modules, while the parent starts up
+            _preload(name)
         factory, args, *rest = _recv(inp)
         if rest and rest[0]:
             os.nice(int(rest[0]))    # ``overlapped``'s ``nice``
@@ -221,7 +257,7 @@ def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
     result. ``nice`` (0-19) lowers the worker's scheduling priority, so that on a busy
     machine the consumer of its results runs first and the worker takes the idle time.
     """
-    proc = _worker_process()
+    proc = _PRESTARTED.pop() if _PRESTARTED else _worker_process()
     pending: deque[int] = deque()
     source = iter(packets)
     try:

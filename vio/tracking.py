@@ -85,3 +85,27 @@ class ImageStage:
                                      right_velocity=np.asarray(tf.right_velocity, float).copy())
         # images decoded from files (``load``) stay here: a pair is ~0.7 MB to send back
         return dataclasses.replace(pkt, features=fr, images=() if pkt.image_files else pkt.images)
+
+
+def warm_up() -> None:
+    """Load the image stage's compiled kernels (PNG decoding, CLAHE, Shi-Tomasi and the
+    rest, from Numba's disk cache: ~0.3 s at a worker's first frame) by tracking a small
+    synthetic stereo pair through a throw-away front end. ``vio.overlap.prestart``'s
+    worker runs this while the main process is still starting up; nothing is kept."""
+    import cv2
+    from vio.io.png import decode_png_gray8
+    rng = np.random.default_rng(0)
+    w, h = 192, 144
+    tex = cv2.GaussianBlur(rng.integers(0, 256, (h + 8, w + 16)).astype(np.uint8), (5, 5), 1.5)
+    img = decode_png_gray8(cv2.imencode(".png", tex)[1].tobytes())
+    if img is None:
+        img = tex
+    cam0 = CameraCalib(gtsam.Pose3(), (150.0, 150.0, w / 2, h / 2), "radial-tangential",
+                       (-0.28, 0.07, 0.0, 0.0), (w, h))
+    cam1 = dataclasses.replace(cam0, T_b_c=gtsam.Pose3(gtsam.Rot3(), np.array([0.11, 0.0, 0.0])),
+                               name="cam1")
+    fe = Frontend(cam0, cam1, FrontendConfig())
+    for k in range(3):     # a first frame, then tracked ones (temporal LK, new detections)
+        left = np.ascontiguousarray(img[4:4 + h, 8 + k:8 + k + w])
+        fe.match(fe.track(k * 50_000_000, left, None if k == 0 else np.eye(3)),
+                 np.ascontiguousarray(img[4:4 + h, 2 + k:2 + k + w]))
