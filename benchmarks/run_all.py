@@ -111,8 +111,11 @@ def worker(job: dict) -> dict:
     if job["system"] == "soak":
         from memory_soak import soak_worker
         return soak_worker(job)
-    from vio.io.euroc import load_euroc
     mode = job.get("mode", "features")
+    if job["system"] == "ours" and mode in ("mono", "stereo", "hybrid"):
+        from vio.overlap import prestart
+        prestart()   # as `vio run` does (vio.cli): the KLT worker starts up while this loads
+    from vio.io.euroc import load_euroc
     data = load_euroc(job["data"])
     cfg = pipeline_config(job.get("overrides"), mode)
     rss0, cpu0 = rss_mb(), cpu_s()
