@@ -62,6 +62,16 @@ def test_search_recovers_the_offset_of_a_shaking_window(delta_ms):
         assert abs(res.td_s) < 1.5e-3
 
 
+def test_parabola_refines_between_grid_points():
+    """A 3-ms grid around a true 10 ms (grid points 9 and 12 ms): the parabola through the
+    cost minimum and its neighbours lands within 0.5 ms."""
+    imu, R = _shaking(seed=3)
+    kf = np.arange(12, len(R) - 12, 20)
+    res = search_td(imu, imu.t_ns[kf], _pairs(R, kf, 2, 0.2, seed=4), np.zeros(3),
+                    TdSearchConfig(step_s=0.003, search_s=0.045))
+    assert abs(res.best_s - 0.010) < 5e-4 and res.td_s == res.best_s
+
+
 def test_constant_rotation_leaves_the_offset_unobservable():
     """A constant rate: shifting every keyframe by delta rotates nothing between them, so
     no remainder is applied."""

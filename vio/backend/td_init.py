@@ -186,7 +186,7 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
         c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
         a = (c0 + c2 - 2.0 * c1) / (2.0 * cfg.step_s ** 2)    # cost ~ c1 + a (delta - best)^2
         if a > 0:
-            best += float(np.clip(0.25 * (c0 - c2) / (a * cfg.step_s), -0.5, 0.5)) * cfg.step_s
+            best += float(np.clip(0.25 * (c0 - c2) / (a * cfg.step_s ** 2), -0.5, 0.5)) * cfg.step_s
     c_best, bg, r = cost(best)
     inl = r <= tol
     dof = 3 * int(inl.sum()) - 4
