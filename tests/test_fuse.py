@@ -99,3 +99,21 @@ def test_datasheet_imu_model_makes_both_residual_sets_consistent():
     inflated = fuse_groundtruth(nodes, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib, noise=ImuNoiseConfig(5.0, 5.0))
     assert inflated.imu_chi2_dof < 0.2 * f.imu_chi2_dof
     assert inflated.shift_pos_rms_m < f.shift_pos_rms_m     # it stays glued to the ground truth
+
+
+def test_nodes_without_a_prior_follow_the_imu_and_leave_the_others_unchanged():
+    """The generator fuses at frame stamps and exposure times but puts ground-truth priors
+    on the exposures only (``TrackGenConfig.gt_priors``): the extra nodes must not pull
+    the solution, so the exposure nodes agree with a fusion at the exposures alone."""
+    gt, imu, calib = _load(shared("euroc_imu_gt", "V2_01_easy"))
+    tk = gt.t_ns[0] + 1_000_000_000 + np.arange(60) * 50_000_000
+    expo = tk + 25_000_000
+    nodes = np.unique(np.r_[tk, expo])
+    with_stamps = fuse_groundtruth(nodes, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib,
+                                   prior_mask=np.isin(nodes, expo))
+    alone = fuse_groundtruth(expo, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib)
+    p, R = with_stamps.at(expo)
+    assert np.abs(p - alone.p_w).max() < 2e-4
+    assert _rot_err(R, alone.R_w_b).max() < 2e-4
+    both = fuse_groundtruth(nodes, gt.t_ns, gt.p_w, gt.q_wxyz, imu, calib)   # priors everywhere
+    assert np.abs(both.at(expo)[0] - alone.p_w).max() > 2 * np.abs(p - alone.p_w).max()

@@ -91,11 +91,12 @@ def _matrices(q_wxyz: np.ndarray) -> np.ndarray:
 
 def fuse_groundtruth(node_t: np.ndarray, gt_t: np.ndarray, gt_p: np.ndarray, gt_q: np.ndarray,
                      imu: ImuData, calib: ImuCalib, pos_sigma_m: float = 0.002,
-                     rot_sigma_rad: float = 0.005, noise: ImuNoiseConfig = ImuNoiseConfig(1.0, 1.0)
-                     ) -> FusedTrajectory:
+                     rot_sigma_rad: float = 0.005, noise: ImuNoiseConfig = ImuNoiseConfig(1.0, 1.0),
+                     prior_mask: np.ndarray | None = None) -> FusedTrajectory:
     """Smooth the ground truth (``gt_t`` (N,) ns, ``gt_p`` (N, 3), ``gt_q`` (N, 4) wxyz)
     against the IMU at the increasing node times ``node_t`` (K,) ns, which must lie in
-    both spans. See the module docstring."""
+    both spans; ``prior_mask`` (K,) bool: the nodes holding a ground-truth pose prior
+    (default all; the others follow from the IMU between them). See the module docstring."""
     node_t = np.asarray(node_t, np.int64)
     p0, R0 = interpolate_poses(gt_t, gt_p, gt_q, node_t)
     poses = [gtsam.Pose3(gtsam.Rot3(R), p) for R, p in zip(R0, p0)]
@@ -104,9 +105,11 @@ def fuse_groundtruth(node_t: np.ndarray, gt_t: np.ndarray, gt_p: np.ndarray, gt_
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, rot_sigma_rad), np.full(3, pos_sigma_m)])
     g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
     zero = gtsam.imuBias.ConstantBias()
-    n_pose = len(poses)
+    mask = np.ones(len(poses), bool) if prior_mask is None else np.asarray(prior_mask, bool)
+    n_pose = int(mask.sum())
     for i, T in enumerate(poses):
-        g.add(gtsam.PriorFactorPose3(X(i), T, prior))
+        if mask[i]:
+            g.add(gtsam.PriorFactorPose3(X(i), T, prior))
         vals.insert(X(i), T)
         vals.insert(V(i), v0[i])
         vals.insert(B(i), zero)

@@ -270,13 +270,17 @@ def _raw_poses(cfg: TrackGenConfig, gt_t: np.ndarray, p: np.ndarray, q: np.ndarr
 
 def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
                  t_ns: np.ndarray, td: int) -> FusedTrajectory:
-    """The IMU-consistent trajectory at the exposure times (``cfg.gt_nodes``: also at the
-    frame stamps) and half a frame period beyond both ends, inside the IMU margin."""
+    """The IMU-consistent trajectory at the frame stamps and exposure times (and half a
+    frame period beyond both ends, inside the IMU margin), its ground-truth pose priors
+    where ``cfg.gt_priors`` says."""
     v = imu.table.values
     data = ImuData(imu.t_ns, v[:, 0:3], v[:, 3:6])
-    ends = t_ns + td if cfg.gt_nodes == "exposure" else np.concatenate([t_ns, t_ns + td])
+    ends = np.concatenate([t_ns, t_ns + td])
     pad = int(round(0.5e9 / cfg.rate_hz))    # a row either side brackets every exposure
     nodes = np.unique(np.concatenate([ends, [ends.min() - pad, ends.max() + pad]]))
+    mask = None
+    if cfg.gt_priors == "exposure":          # the stamps (td != 0) follow from the IMU
+        mask = np.isin(nodes, t_ns + td) | (nodes < ends.min()) | (nodes > ends.max())
     return fuse_groundtruth(nodes, gt.t_ns, gt_p, gt_q, data, read_imu_yaml(src / "imu0" / "sensor.yaml"),
                             cfg.gt_pos_sigma_m, cfg.gt_rot_sigma_rad,
-                            ImuNoiseConfig(cfg.gt_imu_noise_scale, cfg.gt_imu_noise_scale))
+                            ImuNoiseConfig(cfg.gt_imu_noise_scale, cfg.gt_imu_noise_scale), mask)

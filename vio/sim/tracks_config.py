@@ -29,14 +29,16 @@ class TrackGenConfig:
     ``gt_rot_sigma_rad``; the IMU with its sensor.yaml densities times
     ``gt_imu_noise_scale``, 1 = the datasheet) instead of the raw ground truth, whose time
     shift (up to about 1 ms) and jitter against the gyro a real camera would not see.
-    ``gt_nodes``: where that smoothing puts its nodes, each with a ground-truth pose
-    prior: ``"exposure"`` (the frames' exposure times, stamp + td, where the tracks are
-    rendered and the estimator reports) or ``"stamp_and_exposure"`` (both, the earlier
-    generator: with td != 0 twice the nodes, so twice the pull towards the raw ground
-    truth's errors, and a td != 0 excerpt was harder than its td = 0 twin, whose two
-    node sets coincide. Issue 20, ours on MH_03@1+60s, true td given by the sync layer:
-    +25 ms 0.0575 m against the twin's 0.0337 m; fused at the exposure times 0.0313 m;
-    random-pick variant 0.049 -> 0.0299 m, its twin 0.024 m).
+    ``gt_priors``: which of that smoothing's nodes (the frame stamps, where the estimator
+    reports while its td is still off, and the exposure times, stamp + td, where the
+    tracks are rendered; both written as ground-truth rows) hold a ground-truth pose
+    prior: ``"exposure"`` (those only; the stamps follow from the IMU) or
+    ``"stamp_and_exposure"`` (the earlier generator: with td != 0 twice the priors, so
+    twice the pull towards the raw ground truth's errors, and a td != 0 excerpt was
+    harder than its td = 0 twin, whose two node sets coincide. Issue 20, ours on
+    MH_03@1+60s, true td given by the sync layer: +25 ms 0.0575 m against the twin's
+    0.0337 m; with the exposure nodes alone 0.0313 m; the random-pick variant 0.049 ->
+    0.0299 m, its twin 0.024 m).
     ``selection``: how new tracks are picked among the visible candidates, ``"grid"`` (one
     per free image cell first, like a detector with non-maximum suppression) or
     ``"random"`` (uniform over the visible points). ``pose_interp`` (raw ground truth
@@ -75,7 +77,7 @@ class TrackGenConfig:
     gt_pos_sigma_m: float = 0.002
     gt_rot_sigma_rad: float = 0.005
     gt_imu_noise_scale: float = 1.0
-    gt_nodes: Literal["exposure", "stamp_and_exposure"] = "exposure"
+    gt_priors: Literal["exposure", "stamp_and_exposure"] = "exposure"
     selection: Literal["grid", "random"] = "grid"
     pose_interp: Literal["slerp", "nearest"] = "slerp"
 
@@ -98,7 +100,7 @@ class TrackGenConfig:
             "gt_imu_noise_scale > 0": self.gt_imu_noise_scale > 0,
             "selection in (grid, random)": self.selection in ("grid", "random"),
             "pose_interp in (slerp, nearest)": self.pose_interp in ("slerp", "nearest"),
-            "gt_nodes in (exposure, stamp_and_exposure)": self.gt_nodes in ("exposure", "stamp_and_exposure"),
+            "gt_priors in (exposure, stamp_and_exposure)": self.gt_priors in ("exposure", "stamp_and_exposure"),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
