@@ -34,7 +34,8 @@ def umeyama_scale(src: np.ndarray, dst: np.ndarray) -> float:
 
 def matched(t_ns: np.ndarray, p: np.ndarray, gt_t: np.ndarray, gt_p: np.ndarray, tol_ns: int = 5_000_000):
     """Estimate stamps (s from the first), positions and ground-truth positions matched in time."""
-    j = np.clip(np.searchsorted(gt_t, t_ns), 0, len(gt_t) - 1)
+    j = np.clip(np.searchsorted(gt_t, t_ns), 1, len(gt_t) - 1)
+    j -= np.abs(gt_t[j - 1] - t_ns) < np.abs(gt_t[j] - t_ns)    # the nearest row, either side
     ok = np.abs(gt_t[j] - t_ns) < tol_ns
     return (t_ns[ok] - t_ns[ok][0]) * 1e-9, p[ok], gt_p[j[ok]]
 
