@@ -25,15 +25,14 @@ agreement) pass at it. A smooth flight (rotation rate nearly constant over the p
 leaves ``delta`` unobservable and the search returns 0: the online td estimate then
 starts, as before, from the sync layer's offset.
 
-Measured (generated tracks on real IMU, 30-s mid-flight excerpts of ``bench_midflight``,
-sync layer at 0): true td +25 ms, the 7 excerpts initialize within 1.5 s 6 times (3
-before), ATE geometric mean 0.79x (V2_02@25 0.582 -> 0.122 % of the path, V1_02@30 0.157
--> 0.091 %; MH_04@40 0.131 -> 0.259 %); true -20 ms: 7 of 7 within 1.5 s (5 before),
-0.74x (V2_02 0.932 -> 0.228 %, V1_02 0.146 -> 0.073 %, the other 5 unchanged); true +5 ms
-(the default excerpts) unchanged bit for bit. Visual pair rotations (essential matrices)
-put the remainder within ~5 ms of the truth (MH_04@40 +25 ms: 22.5 ms; hand-held MH_03:
-25-30 ms); the online td estimate refines it. Real MH_05 mono from 14 start frames:
-no remainder found, trajectories unchanged.
+Measured (``bench_midflight``: 30-s mid-flight excerpts of generated tracks on real IMU,
+sync layer at 0; ``benchmarks/README.md`` has the tables): at true td +25 / -20 ms, 27
+runs, 26 decide within 1.5 s (15 without the search) and 23 stay under 0.2 % of the path
+(19), e.g. V2_02@25 at -20 ms 0.649 -> 0.074 %, V1_03@25 at +25 ms 0.601 -> 0.056 %;
+one gets worse (MH_04@40 +25 ms 0.135 -> 0.181 %). At the default 5 ms nothing changes
+(20 excerpts identical), nor on real MH_05 mono from 14 start frames. The visual pair
+rotations (essential matrices) put the remainder within ~2.5-10 ms of the truth (V1_02@30
++25 ms: 27.5 ms); the online td estimate refines it.
 """
 
 from __future__ import annotations
