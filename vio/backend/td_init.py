@@ -28,7 +28,7 @@ starts, as before, from the sync layer's offset.
 Measured (``bench_midflight``: 30-s mid-flight excerpts of generated tracks on real IMU,
 sync layer at 0; ``benchmarks/README.md`` has the tables): at true td +25 / -20 ms, 27
 runs, 26 decide within 1.5 s (15 without the search) and 23 stay under 0.2 % of the path
-(19), e.g. V2_02@25 at -20 ms 0.649 -> 0.074 %, V1_03@25 at +25 ms 0.601 -> 0.056 %;
+(20), e.g. V2_02@25 at -20 ms 0.649 -> 0.074 %, V1_03@25 at +25 ms 0.601 -> 0.056 %;
 one gets worse (MH_04@40 +25 ms 0.135 -> 0.181 %). At the default 5 ms nothing changes
 (20 excerpts identical), nor on real MH_05 mono from 14 start frames. The visual pair
 rotations (essential matrices) put the remainder within ~2.5-10 ms of the truth (V1_02@30
