@@ -26,8 +26,6 @@ are cached in the temporary folder per (sequence, start, seconds, seed, noise).
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import sys
 import tempfile
 import time
@@ -45,6 +43,7 @@ from vio.io.euroc import load_euroc  # noqa: E402
 from vio.config import to_dict  # noqa: E402
 from vio.run import default_config, load_config, run_dataset  # noqa: E402
 from vio.sim.tracks import TrackGenConfig, generate_tracks  # noqa: E402
+from datasets import settings_key  # noqa: E402  (benchmarks/)
 from scale_windows import matched, umeyama_scale  # noqa: E402  (benchmarks/)
 
 GT_DIR = ROOT.parent / "shared" / "data" / "euroc_imu_gt"
@@ -55,8 +54,8 @@ RUNS = ("MH_03_medium@50,MH_04_difficult@40,MH_05_difficult@40,MH_05_difficult@7
 def _dataset(seq: str, start: float, seconds: float, seed: int, noise_px: float = 0.7,
              td_s: float = TrackGenConfig.td_s) -> Path:
     cfg = TrackGenConfig(start_s=start, duration_s=seconds, seed=seed, noise_px=noise_px, td_s=td_s)
-    key = hashlib.sha1(json.dumps(to_dict(cfg), sort_keys=True, default=str).encode()).hexdigest()[:10]
-    out = Path(tempfile.gettempdir()) / f"vio_midflight_{seq}_{start:g}_{key}"   # every generator setting
+    key = settings_key([str(GT_DIR / seq), to_dict(cfg)])      # every generator setting
+    out = Path(tempfile.gettempdir()) / f"vio_midflight_{seq}_{start:g}_{key}"
     if not (out / "mav0" / "cam0" / "features.csv").exists():
         generate_tracks(GT_DIR / seq, out, cfg)
     return out

@@ -109,9 +109,13 @@ class DatasetSpec:
         for rendered sequences, so a changed simulator default makes a new folder)."""
         from vio.config import to_dict
         cfg = self.sim_config() if self.sim is not None else self.gen_config()
-        blob = json.dumps([str(self.source), to_dict(cfg)] + ([list(self.calib_error)] if self.calib_error else []),
-                          sort_keys=True, default=str)
-        return hashlib.sha1(blob.encode()).hexdigest()[:12]
+        return settings_key([str(self.source), to_dict(cfg)] + ([list(self.calib_error)] if self.calib_error else []))
+
+
+def settings_key(parts: list) -> str:
+    """Name of a cached generated set: a hash of ``parts`` (its source and every
+    generator setting) as sorted JSON, so a changed default makes a new folder."""
+    return hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
 @dataclass(frozen=True)

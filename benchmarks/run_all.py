@@ -112,7 +112,8 @@ def worker(job: dict) -> dict:
         from memory_soak import soak_worker
         return soak_worker(job)
     mode = job.get("mode", "features")
-    if job["system"] == "ours" and mode in ("mono", "stereo", "hybrid"):
+    from vio.modes import KLT_WORKER_MODES
+    if job["system"] == "ours" and mode in KLT_WORKER_MODES:
         from vio.overlap import prestart
         prestart()   # as `vio run` does (vio.cli): the KLT worker starts up while this loads
     from vio.io.euroc import load_euroc

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -113,15 +112,16 @@ def _prestart_worker(args: argparse.Namespace) -> None:
     feature tracks. Its start-up (interpreter, OpenCV, Numba: ~0.6 s) then overlaps this
     process's instead of delaying the first frame; unused (a config turning the worker
     off), it is stopped at exit."""
-    if os.name == "nt" or args.demo or getattr(args, "live", False) or args.dataset is None:
+    from vio import overlap
+    from vio.modes import KLT_WORKER_MODES
+    if not overlap.SUPPORTED or args.demo or getattr(args, "live", False) or args.dataset is None:
         return
     mode = args.mode
     if mode == "auto":
         cam0 = Path(args.dataset) / "mav0" / "cam0"
         mode = "mono" if (cam0 / "data").is_dir() and not (cam0 / "features.csv").exists() else "features"
-    if mode in ("mono", "stereo", "hybrid"):
-        from vio.overlap import prestart
-        prestart()
+    if mode in KLT_WORKER_MODES:
+        overlap.prestart()
 
 
 def main(argv: list[str] | None = None) -> int:

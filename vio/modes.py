@@ -5,6 +5,11 @@ overrides them. Each entry's comment gives the measurement that set it.
 
 from __future__ import annotations
 
+# modes whose KLT front end runs in the worker process (vio.overlap) unless
+# frontend.worker_process is off; direct keeps its KLT in process (needed only until
+# it is initialized)
+KLT_WORKER_MODES = ("mono", "stereo", "hybrid")
+
 # Image modes see ~150 KLT tracks at the camera rate (feature-track datasets ~20-40): keyframes at
 # most every 0.12 s (every third frame at 20 Hz) and 80 landmarks in the window keep stereo above
 # 1.5x real time at 752x480 on two cores with ATE ~1 cm (benchmarks/bench_image_modes.py).

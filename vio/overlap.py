@@ -44,6 +44,7 @@ except ImportError:  # pragma: no cover - Windows
 log = logging.getLogger(__name__)
 
 _HEADER = struct.Struct("<Q")
+SUPPORTED = os.name != "nt"    # the parent waits on the worker's pipe with select()
 
 
 class WorkerError(RuntimeError):

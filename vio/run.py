@@ -6,7 +6,6 @@ import argparse
 import dataclasses
 import gc
 import logging
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -18,7 +17,8 @@ import numpy as np
 from vio.config import from_dict, read_yaml
 from vio.conventions import quat_wxyz_from_rot
 from vio.io.euroc import EurocDataset
-from vio.modes import MODE_DEFAULTS, merged
+from vio import overlap
+from vio.modes import KLT_WORKER_MODES, MODE_DEFAULTS, merged
 from vio.pipeline import FrameOutput, InitInfo, Pipeline, PipelineConfig
 from vio.sync import FramePacket, packets
 from vio.trajectory import write_tum
@@ -150,22 +150,20 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
                  **screen)
     from vio.tracking import ImageStage
     args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
-    worker = cfg.frontend.worker_process and os.name != "nt"   # no select() on pipes there
+    worker = cfg.frontend.worker_process and overlap.SUPPORTED
     if mode in ("direct", "hybrid"):
         from vio.direct.mode import attach
         # hybrid tracks KLT on every frame: in the worker process, like stereo mode (direct
         # needs KLT only until it is initialized, so it stays in this process)
-        klt_worker = worker and mode == "hybrid"
+        klt_worker = worker and mode in KLT_WORKER_MODES
         if klt_worker:   # the images stay in the worker (a decoded pair, ~0.7 MB, would fill
             # the pipe and stall it: real MH_01 hybrid wall 15.9 -> 20.5 s when sent back;
             # decoding direct mode's images there cost 8.8 -> 10.6 s and +150 MB)
-            from vio.overlap import overlapped
-            it = overlapped(ImageStage, args, it, nice=cfg.frontend.worker_nice)
+            it = overlap.overlapped(ImageStage, args, it, nice=cfg.frontend.worker_nice)
         return it, attach(pipe, data, cfg, hybrid=mode == "hybrid", klt=not klt_worker)
     if not worker:
         return it, ImageStage(*args)
-    from vio.overlap import overlapped
-    return overlapped(ImageStage, args, it, nice=cfg.frontend.worker_nice), None
+    return overlap.overlapped(ImageStage, args, it, nice=cfg.frontend.worker_nice), None
 
 
 def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frames: int | None = None,

@@ -192,7 +192,7 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
     if dof <= 0 or a <= 0:
         return TdSearch(0.0, best, float("inf"), 0.0, bg, n, int(inl.sum()))
     var = float(r[inl] @ r[inl]) / dof                      # per-axis residual variance
-    gain = (cost(0.0)[0] - c_best) / var
+    gain = (costs[m] - c_best) / var                        # grid[m] is delta = 0
     sigma = float(np.sqrt(var / a))
     ok = gain >= cfg.min_gain and sigma <= cfg.max_sigma_s
     return TdSearch(best if ok else 0.0, best, sigma, float(gain), bg, n, int(inl.sum()))
