@@ -177,9 +177,9 @@ def test_photometric_mode_defaults_yield_to_yaml(tmp_path):
     overrides them (they used to be forced after loading, silently ignoring it)."""
     d, h = default_config("direct").backend, default_config("hybrid").backend
     assert (d.keyframe.min_parallax_px, d.solver.relinearize_threshold) == (40.0, 0.005)
-    assert d.solver.relinearize_skip == default_config("features").backend.solver.relinearize_skip
+    assert d.solver.relinearize_skip == h.solver.relinearize_skip == 10
+    assert default_config("features").backend.solver.relinearize_skip == 1
     assert h.keyframe.min_parallax_px == default_config("features").backend.keyframe.min_parallax_px
-    assert h.solver.relinearize_skip == default_config("features").backend.solver.relinearize_skip
     y = tmp_path / "c.yaml"
     y.write_text("backend:\n  keyframe: {min_parallax_px: 25.0}\n  solver: {relinearize_skip: 3}\n")
     c = load_config(y, mode="direct").backend

@@ -17,11 +17,13 @@ MODE_DEFAULTS: dict[str, dict] = {
     mode: {"backend": {"keyframe": {"min_interval_s": 0.12}, "vision": {"max_landmarks": 80}}}
     for mode in ("mono", "stereo", "hybrid")
 }
-# photometric modes: relinearization checked every 10th update as in the other modes,
-# threshold 0.005 (see vio.direct.mode); direct at every update measured the same ATE
-# (real MH_01 5.1 mm, from frame 100 5.3 / 5.4 mm, renders seed 3/14/21 2.5/6.2/8.4 mm)
-# for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8 mm, renders 7.2/2.7 -> 7.1/2.7 mm
-_PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005}
+# photometric modes: relinearization checked every 10th update (the other modes: every
+# update, vio.backend.config.SolverConfig), threshold 0.005 (see vio.direct.mode); direct
+# at every update measured the same ATE (real MH_01 5.1 mm, from frame 100 5.3 / 5.4 mm,
+# renders seed 3/14/21 2.5/6.2/8.4 mm) for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8
+# mm, renders 7.2/2.7 -> 7.1/2.7 mm. Every update at 0.05: real MH_01 direct 5.2 / 5.2 mm
+# at 11.7 -> 22.9 ms a frame, hybrid 5.0 / 4.9 mm at 18.5 -> 30.8 ms
+_PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005, "relinearize_skip": 10}
 MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
 # stereo and hybrid: landmark inverse depths eliminated inside per-anchor factors
 # (vio.backend.bundles). Stereo real MH_01: frame p95 / max 78 / 104 -> 41 / 53 ms, ATE 6.3
