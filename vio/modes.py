@@ -18,7 +18,7 @@ MODE_DEFAULTS: dict[str, dict] = {
     for mode in ("mono", "stereo", "hybrid")
 }
 # photometric modes: relinearization checked every 10th update (the other modes: every
-# update, vio.backend.config.SolverConfig), threshold 0.005 (see vio.direct.mode); direct
+# update at 0.01, vio.backend.config.SolverConfig), threshold 0.005 (see vio.direct.mode); direct
 # at every update measured the same ATE (real MH_01 5.1 mm, from frame 100 5.3 / 5.4 mm,
 # renders seed 3/14/21 2.5/6.2/8.4 mm) for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8
 # mm, renders 7.2/2.7 -> 7.1/2.7 mm. Every update at 0.05: real MH_01 direct 5.2 / 5.2 mm

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from vio.backend.gauge import GaugeConfig
 from vio.backend.health import BridgeConfig, HealthConfig
 from vio.backend.scale_refine import RefineConfig
 from vio.imu import ImuNoiseConfig
@@ -295,16 +296,16 @@ class CalibConfig:
 class SolverConfig:
     """Fixed-lag smoother. ``lag_s``: window length; ``relinearize_*`` map onto
     ``ISAM2Params``: every update relinearizes the variables whose step from their
-    linearization point exceeds the threshold (0.05 rad / m). Checked only every 10th
-    update (GTSAM's default, this project's until now), the steps of a weakly observed
+    linearization point exceeds the threshold (0.01 rad / m). Checked only every 10th
+    update (GTSAM's default, this project's until stop 32), the steps of a weakly observed
     monocular scale ran up to 0.5-1.6 m before they were relinearized, and the window
-    jumped back and forth by as much at every 10th update (generated MH_04@50: 0.99 %
-    of the path; skip 2 gave 4.2 %, skip 5 16 restarts and 23 m, skip 1 0.20 %).
-    ``bench_midflight`` over 20 excerpts, skip 10 / threshold 0.01 -> skip 1 / 0.05:
-    worst 0.99 -> 0.25 %, 18 -> 19 under 0.2 %, geometric mean 0.109 -> 0.101 %, wall
-    168 -> 146 s; real MH_05 mono from 14 start frames mean 0.151 -> 0.126 m; real V1_01
-    tracks and real MH_01 stereo unchanged (0.0265 m, 6.1 mm). The photometric modes keep
-    every 10th update (``vio.modes``). ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
+    jumped back and forth by as much at every 10th update (generated MH_04@50: 0.99 % of
+    the path; skip 2 gave 4.2 %, skip 5 16 restarts, skip 1 0.25 %). With the gauge prior
+    (``vio.backend.gauge``), 20 ``bench_midflight`` excerpts: worst 0.99 -> 0.38 %, 18 ->
+    19 under 0.2 %, geometric mean 0.109 -> 0.097 %; real MH_05 mono from 14 start frames
+    mean 0.151 -> 0.120 m (``benchmarks/README.md``). Threshold 0.05 took a take-off
+    (V1_03@0, td 0) from 0.018 to 0.085 m. The photometric modes keep every 10th update
+    (``vio.modes``). ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
     Householder QR (real MH_05 mono: main process CPU 6.63 -> 4.68 s, p95 per frame
     111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
     the update is re-solved with QR (``vio.backend.smoother``). ``wildfire_threshold``:
@@ -314,7 +315,7 @@ class SolverConfig:
     (``vio.backend.padding``; real MH_05 mono: same trajectory, fewer callbacks)."""
 
     lag_s: float = 2.5
-    relinearize_threshold: float = 0.05
+    relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
     factorization: Literal["QR", "CHOLESKY"] = "CHOLESKY"
     wildfire_threshold: float = 1e-6
@@ -336,3 +337,4 @@ class BackendConfig:
     health: HealthConfig = field(default_factory=HealthConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    gauge: GaugeConfig = field(default_factory=GaugeConfig)

@@ -24,6 +24,7 @@ from vio.backend import graph, padding, smoother
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
+from vio.backend.gauge import GaugeAnchor
 from vio.backend.regauge import ScaleRefiner
 from vio.backend.td_reanchor import maybe_reanchor_td
 from vio.backend.bundles import EliminatedLandmarks
@@ -119,6 +120,7 @@ class Estimator:
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
         self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
+        self.gauge = GaugeAnchor(cfg.gauge)   # position and yaw held in the window (vio.backend.gauge)
 
     # ------------------------------------------------------------------ setup
     def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
@@ -132,6 +134,7 @@ class Estimator:
     def remap_factor_indices(self, remap: dict[int, int]) -> None:
         """After a smoother rebuild (``vio.backend.smoother``): old -> new factor slots."""
         self.lm.remap_factor_indices(remap)
+        self.gauge.remap_factor_indices(remap)
         for src in self.sources:
             src.remap_factor_indices(remap)
 
@@ -161,6 +164,7 @@ class Estimator:
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
         self.rates.reset_to(k)
+        self.gauge.reset(k)
         self._td_anchor = self.rates.td_obs(k)
         g = priors if priors is not None else graph.state_priors(
             k, state, self.cfg.init if init is None else init, pose_sigmas)
@@ -250,6 +254,9 @@ class Estimator:
         self.lm.observe(k1, features)
         leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
+        removals += self.gauge.prepare_update(
+            sorted(self.kf_t), leaving, lambda k: v.atPose3(X(k)) if v.exists(X(k)) else self.values.atPose3(X(k)),
+            X, g)
         for src in self.sources:
             src.observe(k1, frame)
             removals += src.prepare_update(k1, pred, leaving, g, v, stamps)
@@ -282,6 +289,7 @@ class Estimator:
         except RuntimeError as exc:   # re-raised unless a Cholesky refusal QR can take
             indices = smoother.qr_resolve(self, g, exc)
         self.lm.record_factor_indices(indices)
+        self.gauge.record_factor_indices(indices)
         for src in self.sources:
             src.record_factor_indices(indices)
         for _ in range(self.cfg.solver.extra_iterations):
