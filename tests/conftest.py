@@ -41,3 +41,19 @@ def batch_solution(cfg, data, n: int, t_ns: int):
     sol = opt.optimize()
     k = next(f for f, t in est.kf_t.items() if t == t_ns)
     return sol.atPose3(graph.X(k)), values.atPose3(graph.X(k))
+
+
+@pytest.fixture(scope="session")
+def sim_tracks_exact(tmp_path_factory):
+    """Noise-free IMU and tracks (8 s, moving start): any estimator disagreement is
+    bookkeeping, not noise."""
+    from vio.io.euroc import load_euroc
+    from vio.sim import simulate
+    from vio.sim.config import SimConfig
+    from vio.sim.tracks import TrackGenConfig, generate_tracks
+    root = tmp_path_factory.mktemp("sim_exact")
+    simulate(root / "raw", SimConfig(seconds=8.0, seed=5, stereo=False, render_images=False,
+                                     imu_noise=False))
+    generate_tracks(root / "raw", root / "trk", TrackGenConfig(td_s=0.005, seed=2, noise_px=0.0,
+                                                               outlier_rate=0.0))
+    return load_euroc(root / "trk")

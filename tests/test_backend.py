@@ -35,20 +35,6 @@ def sim_tracks(tmp_path_factory):
     return load_euroc(root / "trk")
 
 
-@pytest.fixture(scope="module")
-def sim_tracks_exact(tmp_path_factory):
-    """Noise-free IMU and tracks: any estimator disagreement is bookkeeping, not noise."""
-    from vio.sim import simulate
-    from vio.sim.config import SimConfig
-    from vio.sim.tracks import TrackGenConfig, generate_tracks
-    root = tmp_path_factory.mktemp("sim_exact")
-    simulate(root / "raw", SimConfig(seconds=8.0, seed=5, stereo=False, render_images=False,
-                                     imu_noise=False))
-    generate_tracks(root / "raw", root / "trk", TrackGenConfig(td_s=0.005, seed=2, noise_px=0.0,
-                                                               outlier_rate=0.0))
-    return load_euroc(root / "trk")
-
-
 def _ate(res, data) -> float:
     return evaluate(*res.arrays(), data.groundtruth).ate_rmse
 

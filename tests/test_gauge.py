@@ -43,20 +43,6 @@ def test_gauge_prior_holds_position_and_world_yaw_only():
         assert e == pytest.approx(0.5 * (d / cfg.position_m) ** 2, rel=1e-6)
 
 
-@pytest.fixture(scope="module")
-def sim_exact(tmp_path_factory):
-    from vio.io.euroc import load_euroc
-    from vio.sim import simulate
-    from vio.sim.config import SimConfig
-    from vio.sim.tracks import TrackGenConfig, generate_tracks
-    root = tmp_path_factory.mktemp("gauge")
-    simulate(root / "raw", SimConfig(seconds=6.0, seed=5, stereo=False, render_images=False,
-                                     imu_noise=False))
-    generate_tracks(root / "raw", root / "trk", TrackGenConfig(td_s=0.005, seed=2, noise_px=0.0,
-                                                               outlier_rate=0.0))
-    return load_euroc(root / "trk")
-
-
 def _pose_priors(est) -> list[tuple[int, gtsam.PriorFactorPose3]]:
     fg = est.smoother.getFactors()
     out = []
@@ -68,11 +54,11 @@ def _pose_priors(est) -> list[tuple[int, gtsam.PriorFactorPose3]]:
 
 
 @pytest.mark.slow
-def test_gauge_anchor_follows_the_oldest_window_keyframe(sim_exact):
+def test_gauge_anchor_follows_the_oldest_window_keyframe(sim_tracks_exact):
     """Past the first lag the smoother holds exactly one pose prior, the gauge's, on the
     oldest window keyframe (the previous one removed before its keyframe is
     marginalized); the estimate stays on the truth (exact data)."""
-    d = sim_exact
+    d = sim_tracks_exact
     cfg = PipelineConfig(backend=BackendConfig(solver=SolverConfig(lag_s=1.5)))
     pipe = Pipeline(d.imu_calib, d.cam0.calib, cfg)
     checked, outs = 0, []
