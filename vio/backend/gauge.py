@@ -62,7 +62,7 @@ class GaugeAnchor:
 
     def __init__(self, cfg: GaugeConfig) -> None:
         self.cfg = cfg
-        self.k: int | None = None        # the anchored keyframe
+        self.k: int | None = None        # the anchored keyframe (None before the start)
         self.slot: int | None = None     # its prior's smoother slot (None: the start's priors)
         self._pos: int | None = None     # position of a new prior in this update's graph
         self.moves = 0
@@ -78,17 +78,15 @@ class GaugeAnchor:
         the new one included; ``pose_of(k)``: keyframe ``k``'s ``T_w_b`` estimate or
         prediction; ``key_of(k)``: its pose key): when the anchored keyframe leaves, its
         prior is removed (the returned slots) and a new one goes on the oldest remaining
-        keyframe."""
+        keyframe (the new keyframe never leaves, so one remains)."""
         self._pos = None
-        if not self.cfg.enabled or self.k is None or self.k not in leaving:
+        if not self.cfg.enabled or self.k not in leaving:
             return []
-        stay = [k for k in keyframes if k not in leaving]
         removals = [] if self.slot is None else [self.slot]
-        self.k, self.slot = (min(stay), None) if stay else (None, None)
-        if self.k is not None:
-            self._pos = int(g.size())
-            g.add(gauge_prior(key_of(self.k), pose_of(self.k), self.cfg))
-            self.moves += 1
+        self.k, self.slot = min(k for k in keyframes if k not in leaving), None
+        self._pos = int(g.size())
+        g.add(gauge_prior(key_of(self.k), pose_of(self.k), self.cfg))
+        self.moves += 1
         return removals
 
     def record_factor_indices(self, indices: list[int]) -> None:
