@@ -184,3 +184,73 @@ def test_update_hands_callbacks_the_linearization_point_uncopied():
     assert seen_p and not any(s is theta_p for s in seen_p)
     L = gtsam.symbol_shorthand.L
     assert all(est_h.atVector(L(i))[0] == est_p.atVector(L(i))[0] for i in range(50))
+
+
+def _chain_step(k: int, rng: np.random.Generator):
+    """Keyframe ``k`` of a turning Pose3 chain: odometry (a 0.4-rad turn and a 1-m step a
+    keyframe, noisy), a loose position fix, and a dead-reckoned initial guess 0.3 m off:
+    iSAM2 relinearizes keys of the marginal factors after they are made."""
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    step = gtsam.Pose3(gtsam.Rot3.Rz(0.4), np.array([1.0, 0.0, 0.1]))
+    truth = [gtsam.Pose3()]
+    for _ in range(k):
+        truth.append(truth[-1].compose(step))
+    if k == 0:
+        g.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.01)))
+        v.insert(0, gtsam.Pose3())
+        return g, v
+    meas = step.retract(rng.normal(0, 0.02, 6))
+    g.add(gtsam.BetweenFactorPose3(k - 1, k, meas, gtsam.noiseModel.Isotropic.Sigma(6, 0.02)))
+    g.add(gtsam.GPSFactor(k, truth[k].translation() + rng.normal(0, 0.3, 3),
+                          gtsam.noiseModel.Isotropic.Sigma(3, 0.3)))
+    v.insert(k, truth[k].retract(np.r_[0.0, 0.0, 0.3, 0.3, -0.2, 0.1]))
+    return g, v
+
+
+def _chain(rebuild_at: int | None, n: int = 14) -> gtsam.Values:
+    est = _est("QR")
+    p = gtsam.ISAM2Params()
+    p.setFactorization("QR")
+    p.relinearizeSkip = 1
+    p.setRelinearizeThreshold(1e-3)
+    est._new_smoother = lambda factorization=None: gtsam.IncrementalFixedLagSmoother(3.0, p)
+    est.smoother = est._new_smoother()
+    rng = np.random.default_rng(7)
+    for k in range(n):
+        g, v = _chain_step(k, rng)
+        est.smoother.update(g, v, {k: float(k)}, [])
+        if k == rebuild_at:
+            new, remap, _ = smoother.rebuilt(est)
+            smoother.install(est, new, remap)
+    for _ in range(3):
+        est.smoother.update()
+    return est.smoother.calculateEstimate()
+
+
+def test_rebuilt_smoother_keeps_its_marginals_where_they_were_made():
+    """A rebuild's marginal factors carry their linearization point (``smoother.anchored``):
+    iSAM2 keeps its own marginals' keys from relinearizing, a rebuilt smoother does not,
+    and a marginal without a point would follow each relinearization (its mean dragged
+    along). Rebuilt once the first marginals exist, the chain ends where the smoother
+    that was never rebuilt does."""
+    ref, got = _chain(None), _chain(6)
+    for k in range(11, 14):
+        d = ref.atPose3(k).localCoordinates(got.atPose3(k))
+        assert np.linalg.norm(d) < 1e-3, (k, d)
+
+
+def test_anchored_marginal_shifts_with_the_estimate():
+    """``anchored(f, lin)`` evaluated at ``lin`` + dx is the marginal's linear error at dx."""
+    lin = gtsam.Values()
+    lin.insert(1, gtsam.Pose3(gtsam.Rot3.Rx(0.3), np.array([1.0, 2.0, 3.0])))
+    A = np.random.default_rng(3).normal(size=(6, 6))
+    b = np.arange(6.0)
+    raw = gtsam.LinearContainerFactor(gtsam.JacobianFactor(1, A, b, gtsam.noiseModel.Unit.Create(6)))
+    assert raw.error(lin) == 0.0    # no point: iSAM2's marginal, counted as 0
+    f = smoother.anchored(raw, lin)
+    dx = np.array([0.01, -0.02, 0.03, 0.1, 0.0, -0.1])
+    c = gtsam.Values()
+    c.insert(1, lin.atPose3(1).retract(dx))
+    assert f.error(c) == pytest.approx(0.5 * np.sum((A @ dx - b) ** 2), rel=1e-9)
+    other = _prior(0, [0, 0, 0], [1, 1, 1])
+    assert smoother.anchored(other, lin) is other

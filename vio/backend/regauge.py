@@ -91,8 +91,8 @@ class Similarity:
 
 def _factor(f, sim: Similarity, lin: gtsam.Values):
     """``f`` in the transformed world (module docstring); ``lin``: the smoother's
-    linearization point, relative to which iSAM2's marginal factors (linear, without a
-    linearization point of their own) are expressed."""
+    linearization point, at which ``smoother.rebuilt`` hands over each marginal factor
+    (``smoother.anchored``: its linear factor about ``lin``)."""
     if isinstance(f, gtsam.LinearContainerFactor):
         return gtsam.LinearContainerFactor(f.factor(), sim.values(lin, f.keys()))
     if isinstance(f, gtsam.PriorFactorPose3) and chr(gtsam.Symbol(f.keys()[0]).chr()) == "x":

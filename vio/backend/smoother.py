@@ -2,9 +2,10 @@
 factors, and the QR re-solve after a Cholesky refusal.
 
 The gtsam ``Values`` is the only state copy, so a rebuild takes the old smoother's
-factors (marginal ``LinearContainerFactor``s included), linearization point and
-timestamps into a fresh ``IncrementalFixedLagSmoother``; factor slots change, so every
-manager holding smoother indices (``remap_factor_indices``) is remapped.
+factors (marginal ``LinearContainerFactor``s included, each given its linearization point:
+:func:`anchored`), linearization point and timestamps into a fresh
+``IncrementalFixedLagSmoother``; factor slots change, so every manager holding smoother
+indices (``remap_factor_indices``) is remapped.
 
 Cholesky (``SolverConfig.factorization: CHOLESKY``, the default) eliminates ~1.4x
 faster than dense Householder QR on the real sets (real MH_05 mono, main process CPU
@@ -83,6 +84,21 @@ def update(sm: gtsam.IncrementalFixedLagSmoother, *args) -> None:
     sm.update(*args)
 
 
+def anchored(f: gtsam.NonlinearFactor, lin: gtsam.Values) -> gtsam.NonlinearFactor:
+    """``f``, a marginal factor (``LinearContainerFactor``) made explicit about ``lin``.
+
+    iSAM2's ``marginalizeLeaves`` stores its marginals without a linearization point and
+    marks their keys fixed: that smoother never relinearizes them, so its ``theta_`` is
+    their point. A new smoother knows nothing of those fixed keys; there a container
+    without a point would be handed back unshifted at every relinearization of its keys
+    (``LinearContainerFactor::linearize``), dragging its mean along with the estimate.
+    Linearized at ``lin`` and given ``lin`` as its point, it shifts as it should (its
+    error, 0 without a point, is counted too). Other factors are returned unchanged."""
+    if not isinstance(f, gtsam.LinearContainerFactor):
+        return f
+    return gtsam.LinearContainerFactor(f.linearize(lin), lin.extract(list(f.keys())))
+
+
 def rebuilt(est: "Estimator", values: gtsam.Values | None = None,
             convert: Callable | None = None, factorization: str | None = None
             ) -> tuple[gtsam.IncrementalFixedLagSmoother, dict[int, int], list]:
@@ -102,6 +118,7 @@ def rebuilt(est: "Estimator", values: gtsam.Values | None = None,
         if f is None:
             continue
         kept.append((j, f))
+        f = anchored(f, lin)
         g.add(f if convert is None else convert(f, lin))
     new = est._new_smoother(factorization or est.smoother_factorization)
     update(new, g, lin if values is None else values, stamps)
