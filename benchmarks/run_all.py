@@ -210,26 +210,26 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
     """Ours, then the baseline on our schedule; metrics of both and ratios."""
     from vio.io.euroc import find_mav0, read_groundtruth
     gt = read_groundtruth(find_mav0(path) / "state_groundtruth_estimate0")
+    td_true = ds.true_td_s(spec, path)   # spec.td_true_s: the nominal one, which names the row
     with tempfile.TemporaryDirectory(prefix="vio-sched-") as tmp:
         job = {"data": str(path), "schedule": str(Path(tmp) / "schedule.json"),
                "frames": str(Path(tmp) / "frames.npz"), "mode": ds.run_mode(spec.mode),
                "max_frames": spec.max_frames, "overrides": overrides or {}}
-        ours = metrics(run_job({**job, "system": "ours"}), gt, spec.td_true_s)
+        ours = metrics(run_job({**job, "system": "ours"}), gt, td_true)
         if spec.mode == "variants" and spec.td_true_s:
             base = {"skipped": "the baseline has no td factor: variant rows compare it at td = 0 only"}
         elif spec.mode in NO_BASELINE:
             base = {"skipped": NO_BASELINE[spec.mode]}
         else:
-            base = (metrics(run_job({**job, "system": "baseline"}), gt, spec.td_true_s)
+            base = (metrics(run_job({**job, "system": "baseline"}), gt, td_true)
                     if "error" not in ours else {"error": "no schedule (ours failed)"})
         # image modes: also the baseline given the true td (it has no td factor), which
         # separates the unmodelled-td error from the rest of the comparison
-        known = (metrics(run_job({**job, "system": "baseline", "td_known_s": spec.td_true_s}), gt,
-                         spec.td_true_s)
+        known = (metrics(run_job({**job, "system": "baseline", "td_known_s": td_true}), gt, td_true)
                  if ds.run_mode(spec.mode) != "features" and spec.mode not in NO_BASELINE and spec.td_true_s
                  and "error" not in ours else None)
     row = {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin,
-           "td_true_ms": None if spec.td_true_s is None else spec.td_true_s * 1e3,
+           "td_true_ms": None if td_true is None else td_true * 1e3,
            "overrides": overrides or {}, "calib_error": spec.calib_error, "ours": ours, "baseline": base,
            "ratio": {"ate": _ratio(ours, base, "ate_rmse"),
                      "time": _ratio(ours, base, "frame_ms", "mean")}}

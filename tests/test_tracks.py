@@ -314,6 +314,9 @@ def test_nearest_row_pose_interpolation():
     t = np.array([1, 2, 3, 7, 9], np.int64) * 1_000_000
     near, _ = _raw_poses(TrackGenConfig(pose_interp="nearest"), gt_t, p, q, t)
     np.testing.assert_allclose(near[:, 0], [0, 0, 1, 1, 2])
+    from vio.sim.tracks import _render_times
+    np.testing.assert_array_equal(_render_times(TrackGenConfig(pose_interp="nearest"), gt_t, t) // 1_000_000,
+                                  [0, 0, 5, 5, 10])   # the times the frames show (truth's render_offset_s)
     lin, _ = _raw_poses(TrackGenConfig(), gt_t, p, q, t)
     np.testing.assert_allclose(lin[:, 0], [0.2, 0.4, 0.6, 1.4, 1.8])
     with pytest.raises(ValueError, match="pose_interp"):

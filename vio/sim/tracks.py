@@ -237,7 +237,13 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     fpf, tl = res.features_per_frame, res.track_lengths
     truth = {
         "generator": "vio.sim.tracks", "source": str(src), "seed": cfg.seed,
-        "td_s": cfg.td_s, "td_ns": td, "noise_px": cfg.noise_px,
+        "td_s": cfg.td_s, "td_ns": td,
+        # what the images show relative to their stamps: td_s, unless nearest-row poses
+        # moved it (EuRoC's camera stamps lie on the 200-Hz ground-truth grid: td 12 ms
+        # renders every frame 10 ms after its stamp)
+        "render_offset_s": float(np.mean((t_ns + td if fused is not None else
+                                          _render_times(cfg, gt.t_ns, t_ns + td)) - t_ns) * 1e-9),
+        "noise_px": cfg.noise_px,
         "noise_norm": [cfg.noise_px / fx, cfg.noise_px / fy], "outlier_rate": cfg.outlier_rate,
         "n_frames": len(t_ns), "n_observations": len(ids), "n_landmark_points": len(pts),
         "n_landmark_ids": len(lm_ids), "landmarks_file": "landmarks.csv",
@@ -258,14 +264,21 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     return res
 
 
+def _render_times(cfg: TrackGenConfig, gt_t: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+    """The times (ns) whose poses the frames at exposure times ``t_ns`` are rendered from:
+    ``t_ns`` itself, or with ``pose_interp: nearest`` the nearest row's (raw ground truth
+    only: the IMU-consistent trajectory is evaluated at ``t_ns``)."""
+    if cfg.pose_interp != "nearest":
+        return t_ns
+    i = np.clip(np.searchsorted(gt_t, t_ns), 1, len(gt_t) - 1)
+    i -= (t_ns - gt_t[i - 1]) < (gt_t[i] - t_ns)
+    return gt_t[i]
+
+
 def _raw_poses(cfg: TrackGenConfig, gt_t: np.ndarray, p: np.ndarray, q: np.ndarray,
                t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Body poses (p_w (K, 3), R_w_b (K, 3, 3)) at ``t_ns`` from the raw ground-truth rows."""
-    if cfg.pose_interp == "nearest":
-        i = np.clip(np.searchsorted(gt_t, t_ns), 1, len(gt_t) - 1)
-        i -= (t_ns - gt_t[i - 1]) < (gt_t[i] - t_ns)
-        t_ns = gt_t[i]
-    return interpolate_poses(gt_t, p, q, t_ns)
+    return interpolate_poses(gt_t, p, q, _render_times(cfg, gt_t, t_ns))
 
 
 def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
