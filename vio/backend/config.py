@@ -304,7 +304,10 @@ class SolverConfig:
     (``vio.backend.gauge``), 20 ``bench_midflight`` excerpts: worst 0.99 -> 0.38 %, 18 ->
     19 under 0.2 %, geometric mean 0.109 -> 0.097 %; real MH_05 mono from 14 start frames
     mean 0.151 -> 0.120 m (``benchmarks/README.md``). Threshold 0.05 took a take-off
-    (V1_03@0, td 0) from 0.018 to 0.085 m. The photometric modes keep every 10th update
+    (V1_03@0, td 0) from 0.018 to 0.085 m. (Those runs still had the rebuilt smoothers'
+    dragged marginals, ``vio.backend.smoother.anchored``; without them every 10th update
+    still leaves the 20 excerpts at 0.103 %, worst 1.55 %, against 0.091 %, worst 0.17 %
+    at every update.) The photometric modes keep every 10th update
     (``vio.modes``). ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
     Householder QR (real MH_05 mono: main process CPU 6.63 -> 4.68 s, p95 per frame
     111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
