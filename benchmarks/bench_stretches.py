@@ -2,7 +2,7 @@
 other frames, in several modes.
 
     python benchmarks/bench_stretches.py [DATA] [--starts 10,20,...] [--modes stereo,direct,hybrid]
-                                         [--every 10] [--last 220]
+                                         [--every 10] [--last 220] [--config overrides.yaml]
 
 For each start frame S a temporary copy of ``DATA`` (default the real MH_01 stereo set)
 is made whose camera lists begin at S (images, IMU and ground truth are symlinks, only
@@ -34,7 +34,7 @@ sys.path[:0] = [str(ROOT)]
 
 from vio.evaluation import evaluate  # noqa: E402
 from vio.io.euroc import load_euroc  # noqa: E402
-from vio.run import default_config, run_dataset  # noqa: E402
+from vio.run import load_config, run_dataset  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "euroc_MH_01_stereo_synimu"
 
@@ -63,9 +63,9 @@ def stretch(src: Path, start: int, out: Path) -> Path:
     return out
 
 
-def run(folder: Path, mode: str) -> dict:
+def run(folder: Path, mode: str, config: Path | None = None) -> dict:
     data = load_euroc(folder)
-    res = run_dataset(data, default_config(mode), mode=mode)
+    res = run_dataset(data, load_config(config, mode=mode), mode=mode)
     t, p, q = res.arrays()
     e = evaluate(t, p, q, data.groundtruth)
     ms = res.frame_ms()
@@ -83,6 +83,7 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=10)
     ap.add_argument("--last", type=int, default=220)
     ap.add_argument("--modes", default="stereo,direct,hybrid")
+    ap.add_argument("--config", type=Path, default=None, help="YAML overrides, as vio run --config")
     a = ap.parse_args()
     logging.disable(logging.WARNING)
     starts = ([int(s) for s in a.starts.split(",")] if a.starts
@@ -95,12 +96,12 @@ def main() -> None:
         for s in starts:
             folder = stretch(a.data, s, Path(tmp) / f"from_{s}")
             for m in modes:
-                r = table.setdefault(s, {})[m] = run(folder, m)
+                r = table.setdefault(s, {})[m] = run(folder, m, a.config)
                 print(f"{s:5d} {m:7s} {r['ate_mm']:7.2f} {r['poses']:4d}/{r['frames']:4d} {r['init']:28s} "
                       f"{r['p95']:7.1f} {r['max']:7.1f}", flush=True)
     for m in modes:
         v = [table[s][m]["ate_mm"] for s in starts]
-        print(f"{m}: ATE {min(v):.1f}-{max(v):.1f} mm over {len(v)} stretches")
+        print(f"{m}: ATE {min(v):.1f}-{max(v):.1f} mm, mean {np.mean(v):.2f} mm over {len(v)} stretches")
     if {"hybrid", "stereo"} <= set(modes):
         ok = sum(table[s]["hybrid"]["ate_mm"] <= table[s]["stereo"]["ate_mm"] for s in starts)
         print(f"hybrid at or below stereo on {ok} of {len(starts)} stretches")
