@@ -239,13 +239,15 @@ def test_rebuilt_smoother_keeps_its_marginals_where_they_were_made():
         assert np.linalg.norm(d) < 1e-3, (k, d)
 
 
-def test_anchored_marginal_shifts_with_the_estimate():
+@pytest.mark.parametrize("form", ["jacobian", "hessian"])   # QR / Cholesky smoothers' marginals
+def test_anchored_marginal_shifts_with_the_estimate(form):
     """``anchored(f, lin)`` evaluated at ``lin`` + dx is the marginal's linear error at dx."""
     lin = gtsam.Values()
     lin.insert(1, gtsam.Pose3(gtsam.Rot3.Rx(0.3), np.array([1.0, 2.0, 3.0])))
     A = np.random.default_rng(3).normal(size=(6, 6))
     b = np.arange(6.0)
-    raw = gtsam.LinearContainerFactor(gtsam.JacobianFactor(1, A, b, gtsam.noiseModel.Unit.Create(6)))
+    jf = gtsam.JacobianFactor(1, A, b, gtsam.noiseModel.Unit.Create(6))
+    raw = gtsam.LinearContainerFactor(jf if form == "jacobian" else gtsam.HessianFactor(jf))
     assert raw.error(lin) == 0.0    # no point: iSAM2's marginal, counted as 0
     f = smoother.anchored(raw, lin)
     dx = np.array([0.01, -0.02, 0.03, 0.1, 0.0, -0.1])
