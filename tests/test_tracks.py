@@ -307,17 +307,21 @@ def test_random_selection_differs_from_the_grid(tmp_path):
 def test_nearest_row_pose_interpolation():
     """``pose_interp="nearest"`` samples the raw ground truth at the nearest row (a cruder
     generator's camera poses); ``"slerp"`` interpolates between the bracketing rows."""
-    from vio.sim.tracks import _raw_poses
+    from vio.sim.tracks import _render_times
+    from vio.trajectory import interpolate_poses
     gt_t = np.array([0, 5, 10], np.int64) * 1_000_000
     p = np.array([[0.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
     q = np.tile([1.0, 0, 0, 0], (3, 1))
     t = np.array([1, 2, 3, 7, 9], np.int64) * 1_000_000
-    near, _ = _raw_poses(TrackGenConfig(pose_interp="nearest"), gt_t, p, q, t)
+
+    def raw_poses(cfg):   # as generate_tracks takes them from the raw ground truth
+        return interpolate_poses(gt_t, p, q, _render_times(cfg, gt_t, t))
+
+    near, _ = raw_poses(TrackGenConfig(pose_interp="nearest"))
     np.testing.assert_allclose(near[:, 0], [0, 0, 1, 1, 2])
-    from vio.sim.tracks import _render_times
     np.testing.assert_array_equal(_render_times(TrackGenConfig(pose_interp="nearest"), gt_t, t) // 1_000_000,
                                   [0, 0, 5, 5, 10])   # the times the frames show (truth's render_offset_s)
-    lin, _ = _raw_poses(TrackGenConfig(), gt_t, p, q, t)
+    lin, _ = raw_poses(TrackGenConfig())
     np.testing.assert_allclose(lin[:, 0], [0.2, 0.4, 0.6, 1.4, 1.8])
     with pytest.raises(ValueError, match="pose_interp"):
         TrackGenConfig(pose_interp="cubic")

@@ -224,7 +224,9 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     rng_room, rng_track, rng_noise, rng_out = (np.random.default_rng(s) for s in seeds)
     pts, nrm = make_room(gt_p, cfg, rng_room)
     fused = _fused_truth(src, cfg, imu, gt, gt_p, gt_q, t_ns, td) if cfg.imu_consistent else None
-    p_w_b, R_w_b = fused.at(t_ns + td) if fused is not None else _raw_poses(cfg, gt.t_ns, gt_p, gt_q, t_ns + td)
+    # the poses the frames show: the fused trajectory at the exposure times, or the raw rows
+    t_render = t_ns + td if fused is not None else _render_times(cfg, gt.t_ns, t_ns + td)
+    p_w_b, R_w_b = fused.at(t_render) if fused is not None else interpolate_poses(gt.t_ns, gt_p, gt_q, t_render)
     R_b_c, t_b_c = cam.T_b_c.rotation().matrix(), cam.T_b_c.translation()
     R_w_c, p_w_c = R_w_b @ R_b_c, p_w_b + R_w_b @ t_b_c
     frame, point, ids, uv_true, px, n_vis = _track(cfg, cam, pts, nrm, R_w_c, p_w_c, rng_track)
@@ -241,8 +243,7 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
         # what the images show relative to their stamps: td_s, unless nearest-row poses
         # moved it (EuRoC's camera stamps lie on the 200-Hz ground-truth grid: td 12 ms
         # renders every frame 10 ms after its stamp)
-        "render_offset_s": float(np.mean((t_ns + td if fused is not None else
-                                          _render_times(cfg, gt.t_ns, t_ns + td)) - t_ns) * 1e-9),
+        "render_offset_s": float(np.mean(t_render - t_ns) * 1e-9),
         "noise_px": cfg.noise_px,
         "noise_norm": [cfg.noise_px / fx, cfg.noise_px / fy], "outlier_rate": cfg.outlier_rate,
         "n_frames": len(t_ns), "n_observations": len(ids), "n_landmark_points": len(pts),
@@ -273,12 +274,6 @@ def _render_times(cfg: TrackGenConfig, gt_t: np.ndarray, t_ns: np.ndarray) -> np
     i = np.clip(np.searchsorted(gt_t, t_ns), 1, len(gt_t) - 1)
     i -= (t_ns - gt_t[i - 1]) < (gt_t[i] - t_ns)
     return gt_t[i]
-
-
-def _raw_poses(cfg: TrackGenConfig, gt_t: np.ndarray, p: np.ndarray, q: np.ndarray,
-               t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Body poses (p_w (K, 3), R_w_b (K, 3, 3)) at ``t_ns`` from the raw ground-truth rows."""
-    return interpolate_poses(gt_t, p, q, _render_times(cfg, gt_t, t_ns))
 
 
 def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
