@@ -319,17 +319,14 @@ def true_td_s(spec: DatasetSpec, path: Path) -> float | None:
     """The td the frames of ``spec`` (prepared at ``path``) really carry: ``spec.td_true_s``,
     or where the track generator says it rendered them (``render_offset_s`` in
     ``sim_truth.yaml``; nearest-row poses put EuRoC's td 12 ms frames 10 ms after their
-    stamps, on the 200-Hz ground-truth grid)."""
+    stamps, on the 200-Hz ground-truth grid). Sets cached before the field existed render
+    at their nominal td, except nearest-row ones, which :func:`prepare` generates again."""
     if spec.td_true_s is None or not spec.generated or spec.sim is not None:
         return spec.td_true_s
     import yaml
     f = path / "sim_truth.yaml"
     truth = yaml.safe_load(f.read_text()) if f.exists() else {}
-    if "render_offset_s" not in truth:
-        if (truth.get("config") or {}).get("pose_interp", "slerp") != "slerp":
-            raise RuntimeError(f"{f}: generated before render_offset_s was recorded; delete {path} to regenerate")
-        return spec.td_true_s
-    return float(truth["render_offset_s"])
+    return float(truth.get("render_offset_s", spec.td_true_s))
 
 
 CALIB_TRUTH = "calib_truth.json"
