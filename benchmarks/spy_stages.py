@@ -19,7 +19,7 @@ import collections
 STAGES = [  # (stage, marker on the stack); the first match wins
     ("initialization", "_initialize ("),
     ("linearization callbacks (Python)", "error_func ("),
-    ("factor construction: predicted td velocities", "_predicted_velocities ("),
+    ("factor construction: residual rows and td velocities", "track_rows ("),
     ("factor construction: landmark factors", "_factor ("),
     ("factor construction: re-anchoring", "_hand_over ("),
     ("factor construction: new landmarks", "_try_insert ("),

@@ -138,38 +138,99 @@ def test_predicted_velocities_kernel_matches_numpy():
         assert np.allclose(rvel, ref[1], rtol=1e-12, atol=1e-14)
 
 
-@pytest.mark.parametrize("stereo_track,frames", [(False, [3, 4, 6, 7]), (True, [3, 4, 6, 7]), (True, [3])])
-def test_track_factor_equals_the_stereo_and_landmark_builders(stereo_track, frames):
-    """vio.backend.track_factor linearizes exactly as graph.build_stereo_factor /
-    build_landmark_factor (td, Huber, anchor whitening on); also a stereo track seen
-    only in its anchor keyframe."""
-    from vio.backend.track_factor import member_factor, track_member
-    rng = np.random.default_rng(4)
+def _stereo_case(rng, frames, stereo_track, key=9):
+    """A track over ``frames`` (cam1 matches except in frame 6 when ``stereo_track``)."""
     obs = {}
     for f in frames:
         right = stereo_track and f != 6
         obs[f] = Obs(rng.normal(0, 0.2, 2), rng.normal(0, 0.3, 2), 50.0 * f,
-                     rng.normal(0, 0.2, 2) if right else None, rng.normal(0, 0.3, 2) if right else None)
-    tr = Track(9, obs, graph.L(9), 3)
+                     rng.normal(0, 0.2, 2) if right else None, rng.normal(0, 0.3, 2) if right else None,
+                     float(rng.normal(0, 0.001)))
+    return Track(key, obs, graph.L(key), frames[0])
+
+
+def _state(rng, frames, keys):
     C = gtsam.Pose3(gtsam.Rot3.Expmap(np.array([0.01, 0.0, -0.02])), np.array([0.11, 0.0, 0.0]))
-    rig = graph.stereo_rig(C)
     poses = {f: _pose(rng) for f in frames}
-    at = graph.LinPoint(0.4, _pose(rng, 0.05), poses, 0.002)
-    vel, rvel = rng.normal(0, 0.3, (len(frames), 2)), rng.normal(0, 0.3, (len(frames), 2))
     vals = gtsam.Values()
     for f, P in poses.items():
         vals.insert(graph.X(f), P)
     vals.insert(graph.EXTRINSIC, _pose(rng, 0.05))
     vals.insert(graph.TD, np.array([0.003]))
-    vals.insert(tr.key, np.array([0.35]))
-    cfg = BackendConfig()
-    ref = (graph.build_stereo_factor(tr, rig, cfg, 1e-3, 1e-5, vel, rvel, at, frames) if stereo_track
-           else graph.build_landmark_factor(tr, frames, cfg, 1e-3, 1e-5, vel, at))
-    shift_ref = {f: (v.copy(), o) for f, (v, o) in tr.td_shift.items()}
-    got = member_factor(track_member(tr, frames, rig, cfg, 1e-3, 1e-5, vel, rvel, at))
+    for key in keys:
+        vals.insert(key, np.array([0.35]))
+    return C, poses, vals
+
+
+def _same_linearization(ref, got, vals):
     assert list(got.keys()) == list(ref.keys())
     a, b = ref.linearize(vals), got.linearize(vals)
     assert np.array_equal(a.jacobian()[0], b.jacobian()[0]) and np.array_equal(a.jacobian()[1], b.jacobian()[1])
     assert ref.error(vals) == got.error(vals)
+
+
+@pytest.mark.parametrize("stereo_track,frames", [(False, [3, 4, 6, 7]), (True, [3, 4, 6, 7]), (True, [3])])
+def test_track_factor_equals_the_stereo_and_landmark_builders(stereo_track, frames):
+    """vio.backend.track_factor on track_arrays rows (measured velocities) linearizes
+    exactly as graph.build_stereo_factor / build_landmark_factor (td, Huber, anchor
+    whitening on); also a stereo track seen only in its anchor keyframe."""
+    from vio.backend.track_arrays import track_rows
+    from vio.backend.track_factor import member_factor, track_member
+    rng = np.random.default_rng(4)
+    tr = _stereo_case(rng, frames, stereo_track)
+    C, poses, vals = _state(rng, frames, [tr.key])
+    rig = graph.stereo_rig(C)
+    at = graph.LinPoint(0.4, _pose(rng, 0.05), poses, 0.002)
+    cfg = BackendConfig()
+    ref = (graph.build_stereo_factor(tr, rig, cfg, 1e-3, 1e-5, None, None, at, frames) if stereo_track
+           else graph.build_landmark_factor(tr, frames, cfg, 1e-3, 1e-5, None, at))
+    shift_ref = {f: (v.copy(), o) for f, (v, o) in tr.td_shift.items()}
+    vmax = cfg.vision.td_velocity_max
+    rows = track_rows([(tr, frames, 0.4)], True, False, None, None, 0.1, 1.0, vmax, 1e-5)[0]
+    got = member_factor(track_member(tr, frames, rows, rig, cfg, 1e-3, at))
+    _same_linearization(ref, got, vals)
     assert all(np.array_equal(shift_ref[f][0], tr.td_shift[f][0]) and shift_ref[f][1] == tr.td_shift[f][1]
                for f in frames)
+
+
+def test_track_rows_of_many_tracks_equal_the_per_track_predicted_factors():
+    """track_rows over several tracks at once, td velocities predicted from a motion
+    table (a track at lam <= 0 falls back to the measured ones; fast ones are capped),
+    gives each track the factor graph.build_stereo_factor builds from that track's own
+    td_velocity.predicted_velocities."""
+    from vio.backend.td_velocity import predicted_velocities, rig_c1
+    from vio.backend.track_arrays import track_rows
+    from vio.backend.track_factor import member_factor, track_member
+    rng = np.random.default_rng(8)
+    frames = [2, 3, 4, 6, 7]
+    cases = [([3, 4, 6], True, 0.4), ([2, 3], False, 0.8), ([4, 6, 7], True, -0.2), ([6, 7, 2], True, 0.3)]
+    tracks = [_stereo_case(rng, fr, st, key=20 + i) for i, (fr, st, _) in enumerate(cases)]
+    tracks[0].obs[4] = Obs(tracks[0].obs[4].uv, np.array([40.0, 0.0]), 10.0)   # gated: far from its prediction
+    tracks[2].obs[6] = Obs(tracks[2].obs[6].uv, np.array([40.0, 0.0]), 10.0)   # measured beyond the cap
+    C, poses, vals = _state(rng, frames, [tr.key for tr in tracks])
+    rig, R10_t01 = graph.stereo_rig(C), rig_c1(C)
+    K = len(frames)
+    table = ({f: i for i, f in enumerate(frames)}, np.array([_pose(rng).rotation().matrix() for _ in range(K)]),
+             rng.normal(0, 0.5, (K, 3)), rng.normal(0, 0.5, (K, 3)), rng.normal(0, 0.5, (K, 3)))
+    cfg = BackendConfig()
+    vmax, gate = cfg.vision.td_velocity_max, 3.0
+    items = [(tr, fr, lam) for tr, (fr, _, lam) in zip(tracks, cases)]
+    rows = track_rows(items, True, True, table, R10_t01, 0.1, gate, vmax, 1e-5)
+    for (tr, fr, lam), r in zip(items, rows):
+        got = member_factor(track_member(tr, fr, r, rig, cfg, 1e-3))
+        shift = dict(tr.td_shift)
+        vel = rvel = None
+        if lam > 0:
+            obs = [tr.obs[f] for f in fr]
+            has_r = np.array([o.right_uv is not None for o in obs])
+            pick = [lambda o: o.right_uv, lambda o: o.right_velocity]
+            ruv, rmeas = (np.array([p(o) if o.right_uv is not None else np.zeros(2) for o in obs]) for p in pick)
+            vel, rvel = np.empty((len(fr), 2)), np.empty((len(fr), 2))
+            predicted_velocities(np.array([table[0][f] for f in fr], np.int64), np.array([o.uv for o in obs]),
+                                 np.array([o.velocity for o in obs]), has_r, ruv, rmeas, *table[1:], lam,
+                                 *R10_t01, 0.1, gate, vel, rvel)
+        ref = graph.build_stereo_factor(tr, rig, cfg, 1e-3, 1e-5, vel, rvel, None, fr)
+        _same_linearization(ref, got, vals)
+        assert all(np.array_equal(shift[f][0], tr.td_shift[f][0]) and shift[f][1] == tr.td_shift[f][1] for f in fr)
+    assert not rows[0].vel[0].any() and not rows[2].vel[0].any()   # no td term from either
+    assert rows[1].vel.any() and rows[3].vel.any()

@@ -48,7 +48,8 @@ from factors import landmark_schur
 from factors.projection import tangent_basis
 from vio.backend import graph
 from vio.backend.landmarks import Track
-from vio.backend.track_factor import _layout
+from vio.backend.td_velocity import rig_c1
+from vio.backend.track_arrays import track_rows
 from vio.backend.tracks import LandmarkManager
 
 _EYE4, _EYE6 = np.eye(4), np.eye(6)
@@ -251,9 +252,7 @@ class EliminatedLandmarks(LandmarkManager):
         C, ad_inv = (self._rig.C, self._rig.ad_inv) if self._rig is not None else (_EYE4, _EYE6)
         frames = sorted({f for _, fr in entries for f in fr})
         pos = {f: i for i, f in enumerate(frames)}
-        lms = []
-        for tr, fr in entries:
-            lms.append(self._landmark(tr, fr, k, pred, pos))
+        lms = self._landmarks(entries, k, pred, pos)
         bundle = landmark_schur.pack(len(frames), lms, C, ad_inv, vc.model, est.sigma, robust,
                                      td_key is not None, (1.0 / vc.max_depth_m, 1.0 / vc.min_depth_m),
                                      vc.depth_iters)
@@ -267,25 +266,27 @@ class EliminatedLandmarks(LandmarkManager):
         keys = [graph.EXTRINSIC] + [graph.X(f) for f in frames] + ([int(td_key)] if td_key is not None else [])
         return landmark_schur.bundle_factor(keys, bundle), bundle, keys
 
-    def _landmark(self, tr: Track, fr: list[int], k: int, pred: gtsam.NavState, pos: dict) -> dict:
-        """``landmark_schur.pack``'s entry of one track over frames ``fr`` (anchor first).
-        A track no longer observed keeps the arrays of its last factor (td velocities and
-        shifts included, as the variable mode keeps a dead landmark's factor)."""
-        prior = dict(lam=tr.lam, p_lam=tr.lam_prior[0] if tr.lam_prior else 0.0,
-                     p_info=tr.lam_prior[1] if tr.lam_prior else 0.0, bodies=[pos[f] for f in fr])
-        if tr.entry is not None and tr.entry[0] == tuple(fr) and k not in tr.obs:
-            return {**tr.entry[1], **prior}
+    def _landmarks(self, entries: list[tuple[Track, list[int]]], k: int, pred: gtsam.NavState,
+                   pos: dict) -> list[dict]:
+        """``landmark_schur.pack``'s entries of ``entries`` (track, frames with the anchor
+        first), their rows built in one pass (``vio.backend.track_arrays``). A track no
+        longer observed keeps the arrays of its last factor (td velocities and shifts
+        included, as the variable mode keeps a dead landmark's factor)."""
         vc = self.est.cfg.vision
-        vel = rvel = None
-        if vc.td_velocity == "predicted" and tr.lam > 0:
-            vel, rvel = self._predicted_velocities(tr, fr, k, pred, tr.lam)
-        obs = [tr.obs[f] for f in fr]
-        v0, off = graph._cam0_shifts(tr, fr, obs, vel, vc.td_velocity_max, self.est.cam.line_time_s)
-        uv, vel_all, target, right, offset, _, _ = _layout(obs, v0, off, self._rig, rvel, vc.td_velocity_max)
-        arrays = dict(target=target, right=right, uv=uv, vel=vel_all, off=offset, basis=tangent_basis(uv),
-                      a_uv=obs[0].uv, a_vel=v0[0], a_off=float(off[0]))
-        tr.entry = (tuple(fr), arrays)
-        return {**arrays, **prior}
+        fresh = [(tr, fr, tr.lam) for tr, fr in entries
+                 if not (tr.entry is not None and tr.entry[0] == tuple(fr) and k not in tr.obs)]
+        predicted = vc.td_velocity == "predicted"
+        table = self._motion_table(k, pred) if predicted and any(lam > 0 for _, _, lam in fresh) else None
+        if predicted and self._rig_c1 is None and self.est.T_c0_c1 is not None:
+            self._rig_c1 = rig_c1(self.est.T_c0_c1)
+        rows = track_rows(fresh, self._rig is not None, predicted, table, self._rig_c1, vc.min_depth_m,
+                          vc.td_velocity_gate, vc.td_velocity_max, self.est.cam.line_time_s)
+        for (tr, fr, _), r in zip(fresh, rows):
+            tr.entry = (tuple(fr), dict(target=r.target, right=r.right, uv=r.uv, vel=r.vel, off=r.offset,
+                                        basis=r.basis, a_uv=r.a_uv, a_vel=r.a_vel, a_off=r.a_off))
+        return [{**tr.entry[1], "lam": tr.lam, "p_lam": tr.lam_prior[0] if tr.lam_prior else 0.0,
+                 "p_info": tr.lam_prior[1] if tr.lam_prior else 0.0, "bodies": [pos[f] for f in fr]}
+                for tr, fr in entries]
 
     # --------------------------------------------------------------- outliers
     def outlier_removals(self, values: gtsam.Values

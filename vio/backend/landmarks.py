@@ -7,6 +7,7 @@ depth, poses) lives in the smoother's ``Values``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import gtsam
 import numpy as np
@@ -26,6 +27,17 @@ class Obs:
     right_uv: np.ndarray | None = None
     right_velocity: np.ndarray | None = None
     td_obs: float = 0.0
+
+    @cached_property
+    def packed(self) -> np.ndarray:
+        """(11,): ``uv``, ``velocity``, ``row``, ``td_obs``, 1.0 with a cam1 match (else 0),
+        ``right_uv``, ``right_velocity`` (zeros without): one row of
+        ``vio.backend.track_arrays.track_rows``' gather."""
+        r = self.right_uv is not None
+        if r and self.right_velocity is None:
+            raise ValueError("an observation with right_uv needs right_velocity")
+        right = (*self.right_uv, *self.right_velocity) if r else (0.0, 0.0, 0.0, 0.0)
+        return np.array([*self.uv, *self.velocity, self.row, self.td_obs, float(r), *right], float)
 
 
 @dataclass

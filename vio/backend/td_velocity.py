@@ -1,5 +1,17 @@
 """Predicted image velocities of a landmark's observations, for the td term
-(``VisionConfig.td_velocity = "predicted"``; ``LandmarkManager._predicted_velocities``).
+(``VisionConfig.td_velocity = "predicted"``; called per track by
+``vio.backend.track_arrays.track_rows``).
+
+The velocities are predicted from the state (keyframe velocity, bias-corrected gyro,
+landmark depth; ``vio.backend.motion.motion_table``) instead of measured: independent of
+the pixel noise of the observations the factor compares, so the td estimate is not biased
+towards zero by noise (see ``VisionConfig.td_velocity``). The angular rate is the mean
+gyro over [t_k, t_k + td] (``vio.imu.KeyframeRates``). The cam1 prediction also keeps
+the static stereo pair (cam0 and cam1 at one instant) free of td: both of its
+observations then shift consistently with td, as they must, whereas noisy measured
+velocities turn every pair into a pull of td towards zero. Where a prediction is further
+than the gate from the measurement (a wrong depth, or a mistracked observation), the
+observation gets no td term.
 
 One compiled pass per landmark: the point from the anchor ray and inverse depth, its
 depth in each observing camera (cam0 and, with stereo, cam1), the image velocity of a
@@ -15,44 +27,11 @@ import numpy as np
 
 from factors.jit import njit as _njit
 
-_NO_RIG = (np.eye(3), np.zeros(3))   # cam1 placeholders without a stereo rig (never read)
-
 
 def rig_c1(T_c0_c1: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray]:
-    """``(R_c1_c0 (3, 3), t_c0_c1 (3,))`` of the rig, as :func:`track_velocities` takes it
-    (writable arrays: one Numba signature)."""
+    """``(R_c1_c0 (3, 3), t_c0_c1 (3,))`` of the rig, as
+    ``vio.backend.track_arrays.track_rows`` takes it (writable arrays: one Numba signature)."""
     return np.ascontiguousarray(T_c0_c1.rotation().matrix().T), np.array(T_c0_c1.translation())
-
-
-def track_velocities(obs: list, idx: np.ndarray, table: tuple, rig: tuple | None, lam: float,
-                     min_depth: float, gate: float) -> tuple[np.ndarray, np.ndarray | None]:
-    """(n, 2) cam0 and, with a rig, cam1 image velocities of a landmark's observations
-    ``obs`` (``vio.backend.landmarks.Obs``, anchor first; made in window rows ``idx``) at
-    inverse depth ``lam``, predicted from the state (keyframe velocity, bias-corrected
-    gyro, landmark depth: ``table`` is ``vio.backend.motion.motion_table``'s) instead of
-    measured: independent of the pixel noise of the observations the factor compares, so
-    the td estimate is not biased towards zero by noise (see ``VisionConfig.td_velocity``).
-    The angular rate is the mean gyro over [t_k, t_k + td] (``vio.imu.KeyframeRates``).
-    The cam1 prediction also keeps the static stereo pair (cam0 and cam1 at one instant)
-    free of td: both of its observations then shift consistently with td, as they must,
-    whereas noisy measured velocities turn every pair into a pull of td towards zero.
-    Where a prediction is further than ``gate`` from the measurement (a wrong depth, or a
-    mistracked observation), the observation gets no td term. ``rig``: :func:`rig_c1`, or
-    None without cam1 (the cam1 velocities are then None)."""
-    _, R, t, w, v = table
-    n = len(obs)
-    right = [o.right_uv is not None for o in obs]
-    has_r = np.array(right)
-    ruv, rmeas = np.zeros((n, 2)), np.zeros((n, 2))
-    if rig is not None and any(right):
-        for i in np.flatnonzero(has_r):
-            ruv[i], rmeas[i] = obs[i].right_uv, obs[i].right_velocity
-    R10, t01 = _NO_RIG if rig is None else rig
-    vel, rvel = np.empty((n, 2)), np.empty((n, 2))
-    predicted_velocities(idx, np.array([o.uv for o in obs], float), np.array([o.velocity for o in obs], float),
-                         has_r & (rig is not None), ruv, rmeas, R, t, w, v, float(lam), R10, t01,
-                         min_depth, gate, vel, rvel)
-    return vel, (rvel if rig is not None else None)
 
 
 @_njit

@@ -22,7 +22,8 @@ from vio.backend import graph
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
-from vio.backend.td_velocity import rig_c1, track_velocities
+from vio.backend.td_velocity import rig_c1
+from vio.backend.track_arrays import compile_kernel, track_rows
 from vio.backend.track_factor import member_factor, track_member
 from vio.io.types import FeatureFrame
 
@@ -30,6 +31,9 @@ if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
 
 WEAK = gtsam.noiseModel.Isotropic.Sigma(1, 10.0)
+# the slot a landmark factor holds in an update's graph until the update's factors are
+# built together (LandmarkManager._build_deferred); never reaches the smoother
+_SLOT = gtsam.PriorFactorVector(0, np.zeros(1), WEAK)
 
 
 class LandmarkManager:
@@ -49,6 +53,7 @@ class LandmarkManager:
         self._rig_c1 = None                      # td_velocity.rig_c1 of est.T_c0_c1 (stereo)
         self.points = PointTracks(est)           # triangulated tracks as world points (VisionConfig.reanchor)
         graph.compile_kernels()                  # not at the first keyframe: a stall there
+        compile_kernel()
 
     # ------------------------------------------------------------ bookkeeping
     def observe(self, k: int, fr: FeatureFrame) -> None:
@@ -114,7 +119,8 @@ class LandmarkManager:
         self._motion_cache: dict = {}
         self._pose_cache: dict[int, gtsam.Pose3] = {}
         self._calib_cache: tuple | None = None
-        farewells: list[Member] = []
+        farewells: list[Member | tuple] = []
+        self._deferred: list[tuple[Track, list[int], float, int]] = []
         t = self.est.kf_t[k] * 1e-9
         leave = set(leaving)
         self.points.begin_update(lambda: self._motion_table(k, pred))
@@ -154,9 +160,21 @@ class LandmarkManager:
                 lam = v.atVector(tr.key)[0] if v.exists(tr.key) else self.est.values.atVector(tr.key)[0]
                 self._add_factor(tr, g, k, pred, float(lam))
                 stamps[tr.key] = t
-        if farewells:   # one callback for all of them (factors.stack): marginalized in this update
-            g.add(stacked_factor(farewells))
+        self._build_deferred(g, farewells, k, pred)
         return removals
+
+    def _build_deferred(self, g: gtsam.NonlinearFactorGraph, farewells: list, k: int,
+                        pred: gtsam.NavState) -> None:
+        """Build this update's landmark factors into their reserved slots of ``g`` and
+        the farewells (``(track, frames, lam)`` entries among depth-transfer members),
+        all rows in one pass (``vio.backend.track_arrays``)."""
+        todo = [d[:3] for d in self._deferred] + [f for f in farewells if isinstance(f, tuple)]
+        built = iter(self._members(todo, k, pred))
+        for *_, slot in self._deferred:
+            g.replace(slot, member_factor(next(built)))
+        self._deferred = []
+        if farewells:   # one callback for all of them (factors.stack): marginalized in this update
+            g.add(stacked_factor([next(built) if isinstance(f, tuple) else f for f in farewells]))
 
     def _hand_over(self, tr: Track, k: int, pred: gtsam.NavState, leave: set[int],
                    g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict,
@@ -184,7 +202,7 @@ class LandmarkManager:
             lam = float(v.atVector(tr.key)[0])
             anchor = dataclasses.replace(tr.obs[tr.anchor], right_uv=None, right_velocity=None)
             farewell = Track(tr.lid, {tr.anchor: anchor, **leaving}, tr.key, tr.anchor)
-            farewells.append(self._member(farewell, [tr.anchor, *leaving], k, pred, lam))
+            farewells.append((farewell, [tr.anchor, *leaving], lam))
             if old_key is not None and lam_o > 0:
                 farewells.append(graph.build_depth_transfer(old_key, tr.key, old_anchor, tr.anchor,
                                                             leaving[old_anchor].uv, lam_o, old_shift, self.est.cfg))
@@ -230,38 +248,36 @@ class LandmarkManager:
 
     def _add_factor(self, tr: Track, g: gtsam.NonlinearFactorGraph, k: int, pred: gtsam.NavState,
                     lam: float) -> None:
-        """The track's factor over all its observations (its smoother index is recorded)."""
+        """Reserve the track's factor over all its observations a slot in ``g`` (its
+        smoother index is recorded), built by :meth:`_build_deferred`."""
         self._pending.append((tr, int(g.size())))
-        g.add(member_factor(self._member(tr, tr.frames(), k, pred, lam)))
+        self._deferred.append((tr, tr.frames(), lam, int(g.size())))
+        g.add(_SLOT)
 
-    def _member(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState, lam: float) -> Member:
-        """Landmark (or, with cam1 observations, stereo) residual of ``tr`` over ``frames``
-        (anchor first) at inverse depth ``lam`` (``track_factor.track_member``)."""
-        cam = self.est.cam
-        vel = rvel = None
-        if self.est.cfg.vision.td_velocity == "predicted" and lam > 0:
-            vel, rvel = self._predicted_velocities(tr, frames, k, pred, lam)
-        at = None
-        if self.est.cfg.vision.anchor_noise:
-            if self._calib_cache is None:
-                vals = self.est.values
-                self._calib_cache = (vals.atPose3(graph.EXTRINSIC), float(vals.atVector(graph.TD)[0]))
-            T_b_c, td = self._calib_cache
-            at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
-        if self._rig is None and self.est.C_stereo is not None:
-            self._rig = graph.stereo_rig(self.est.C_stereo)
-        return track_member(tr, frames, self._rig, self.est.cfg, self.est.sigma, cam.line_time_s, vel, rvel, at)
-
-    def _predicted_velocities(self, tr: Track, frames: list[int], k: int, pred: gtsam.NavState,
-                              lam: float) -> tuple[np.ndarray, np.ndarray | None]:
-        """``vio.backend.td_velocity.track_velocities`` of ``tr``'s observations in
-        ``frames`` (anchor first) at inverse depth ``lam``, from this update's motion table."""
-        table = self._motion_table(k, pred)
-        if self._rig_c1 is None and self.est.T_c0_c1 is not None:
-            self._rig_c1 = rig_c1(self.est.T_c0_c1)
-        vc = self.est.cfg.vision
-        return track_velocities([tr.obs[f] for f in frames], np.array([table[0][f] for f in frames], dtype=np.int64),
-                                table, self._rig_c1, lam, vc.min_depth_m, vc.td_velocity_gate)
+    def _members(self, items: list[tuple[Track, list[int], float]], k: int,
+                 pred: gtsam.NavState) -> list[Member]:
+        """Landmark (or, with cam1 observations, stereo) residuals of each ``(track,
+        frames, lam)`` over its frames (anchor first) at inverse depth lam
+        (``track_factor.track_member``)."""
+        est, vc = self.est, self.est.cfg.vision
+        if self._rig is None and est.C_stereo is not None:
+            self._rig = graph.stereo_rig(est.C_stereo)
+        predicted = vc.td_velocity == "predicted"
+        if predicted and self._rig_c1 is None and est.T_c0_c1 is not None:
+            self._rig_c1 = rig_c1(est.T_c0_c1)
+        table = self._motion_table(k, pred) if predicted and any(lam > 0 for *_, lam in items) else None
+        rows = track_rows(items, self._rig is not None, predicted, table, self._rig_c1, vc.min_depth_m,
+                          vc.td_velocity_gate, vc.td_velocity_max, est.cam.line_time_s)
+        out = []
+        for (tr, frames, lam), r in zip(items, rows):
+            at = None
+            if vc.anchor_noise:
+                if self._calib_cache is None:
+                    self._calib_cache = (est.values.atPose3(graph.EXTRINSIC), float(est.values.atVector(graph.TD)[0]))
+                T_b_c, td = self._calib_cache
+                at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
+            out.append(track_member(tr, frames, r, self._rig, est.cfg, est.sigma, at))
+        return out
 
     def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
         """``vio.backend.motion.motion_table`` of this update (cached per update)."""
