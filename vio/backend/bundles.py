@@ -48,8 +48,6 @@ from factors import landmark_schur
 from factors.projection import tangent_basis
 from vio.backend import graph
 from vio.backend.landmarks import Track
-from vio.backend.td_velocity import rig_c1
-from vio.backend.track_arrays import track_rows
 from vio.backend.tracks import LandmarkManager
 
 _EYE4, _EYE6 = np.eye(4), np.eye(6)
@@ -272,16 +270,9 @@ class EliminatedLandmarks(LandmarkManager):
         first), their rows built in one pass (``vio.backend.track_arrays``). A track no
         longer observed keeps the arrays of its last factor (td velocities and shifts
         included, as the variable mode keeps a dead landmark's factor)."""
-        vc = self.est.cfg.vision
         fresh = [(tr, fr, tr.lam) for tr, fr in entries
                  if not (tr.entry is not None and tr.entry[0] == tuple(fr) and k not in tr.obs)]
-        predicted = vc.td_velocity == "predicted"
-        table = self._motion_table(k, pred) if predicted and any(lam > 0 for _, _, lam in fresh) else None
-        if predicted and self._rig_c1 is None and self.est.T_c0_c1 is not None:
-            self._rig_c1 = rig_c1(self.est.T_c0_c1)
-        rows = track_rows(fresh, self._rig is not None, predicted, table, self._rig_c1, vc.min_depth_m,
-                          vc.td_velocity_gate, vc.td_velocity_max, self.est.cam.line_time_s)
-        for (tr, fr, _), r in zip(fresh, rows):
+        for (tr, fr, _), r in zip(fresh, self._rows(fresh, k, pred)):
             tr.entry = (tuple(fr), dict(target=r.target, right=r.right, uv=r.uv, vel=r.vel, off=r.offset,
                                         basis=r.basis, a_uv=r.a_uv, a_vel=r.a_vel, a_off=r.a_off))
         return [{**tr.entry[1], "lam": tr.lam, "p_lam": tr.lam_prior[0] if tr.lam_prior else 0.0,

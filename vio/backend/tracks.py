@@ -23,7 +23,7 @@ from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
 from vio.backend.td_velocity import rig_c1
-from vio.backend.track_arrays import compile_kernel, track_rows
+from vio.backend.track_arrays import TrackRows, compile_kernel, track_rows
 from vio.backend.track_factor import member_factor, track_member
 from vio.io.types import FeatureFrame
 
@@ -259,6 +259,23 @@ class LandmarkManager:
         """Landmark (or, with cam1 observations, stereo) residuals of each ``(track,
         frames, lam)`` over its frames (anchor first) at inverse depth lam
         (``track_factor.track_member``)."""
+        est = self.est
+        rows = self._rows(items, k, pred)
+        if est.cfg.vision.anchor_noise and self._calib_cache is None:
+            self._calib_cache = (est.values.atPose3(graph.EXTRINSIC), float(est.values.atVector(graph.TD)[0]))
+        out = []
+        for (tr, frames, lam), r in zip(items, rows):
+            at = None
+            if est.cfg.vision.anchor_noise:
+                T_b_c, td = self._calib_cache
+                at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
+            out.append(track_member(tr, frames, r, self._rig, est.cfg, est.sigma, at))
+        return out
+
+    def _rows(self, items: list[tuple[Track, list[int], float]], k: int,
+              pred: gtsam.NavState) -> list[TrackRows]:
+        """``vio.backend.track_arrays.track_rows`` of ``(track, frames, lam)`` items with
+        this update's motion table and the rig (cam1 rows with stereo)."""
         est, vc = self.est, self.est.cfg.vision
         if self._rig is None and est.C_stereo is not None:
             self._rig = graph.stereo_rig(est.C_stereo)
@@ -266,18 +283,8 @@ class LandmarkManager:
         if predicted and self._rig_c1 is None and est.T_c0_c1 is not None:
             self._rig_c1 = rig_c1(est.T_c0_c1)
         table = self._motion_table(k, pred) if predicted and any(lam > 0 for *_, lam in items) else None
-        rows = track_rows(items, self._rig is not None, predicted, table, self._rig_c1, vc.min_depth_m,
+        return track_rows(items, self._rig is not None, predicted, table, self._rig_c1, vc.min_depth_m,
                           vc.td_velocity_gate, vc.td_velocity_max, est.cam.line_time_s)
-        out = []
-        for (tr, frames, lam), r in zip(items, rows):
-            at = None
-            if vc.anchor_noise:
-                if self._calib_cache is None:
-                    self._calib_cache = (est.values.atPose3(graph.EXTRINSIC), float(est.values.atVector(graph.TD)[0]))
-                T_b_c, td = self._calib_cache
-                at = graph.LinPoint(lam, T_b_c, {f: self._pose(f, k, pred) for f in frames}, td)
-            out.append(track_member(tr, frames, r, self._rig, est.cfg, est.sigma, at))
-        return out
 
     def _motion_table(self, k: int, pred: gtsam.NavState) -> tuple:
         """``vio.backend.motion.motion_table`` of this update (cached per update)."""
