@@ -1,6 +1,7 @@
 """The compiled world-point kernels against the numpy arithmetic they replace, to the bit:
-the predicted td velocities (vio.backend.td_velocity.point_velocities) and the outlier
-check's worst reprojection error (vio.backend.point_tracks.point_worst_errors)."""
+the predicted td velocities (vio.backend.td_velocity.point_velocities, and
+points_velocities over many points at once) and the outlier check's worst reprojection
+error (vio.backend.point_tracks.point_worst_errors)."""
 
 import gtsam
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from vio.backend import graph
 from vio.backend.landmarks import cross3
 from vio.backend.point_tracks import point_worst_errors
-from vio.backend.td_velocity import point_velocities
+from vio.backend.td_velocity import point_velocities, points_velocities
 
 
 def _table(rng, K=10):
@@ -40,6 +41,24 @@ def test_point_velocities_match_numpy(seed):
         out = np.empty((n, 2))
         point_velocities(j, R, t, w, v, p, meas, 0.1, 1.5, 3.0, out)
         assert np.array_equal(out, _velocities_numpy(j, R, t, w, v, p, meas, 0.1, 1.5, 3.0))
+
+
+def test_points_velocities_equal_the_per_point_kernel():
+    rng = np.random.default_rng(7)
+    R, t, w, v = _table(rng)
+    n = np.array([3, 1, 6, 2])
+    start = np.r_[0, np.cumsum(n)].astype(np.int64)
+    j = rng.integers(0, len(R), start[-1]).astype(np.int64)
+    P = rng.normal(size=(len(n), 3)) * 4
+    meas = graph._td_velocity(rng.normal(size=(start[-1], 2)), 3.0)
+    out = np.full((start[-1], 2), np.nan)
+    points_velocities(start, j, R, t, w, v, P, meas, 0.1, 1.5, 3.0, out)
+    for i in range(len(n)):
+        a, b = start[i], start[i + 1]
+        ref = np.empty((b - a, 2))
+        point_velocities(j[a:b].copy(), R, t, w, v, P[i].copy(), meas[a:b].copy(), 0.1, 1.5, 3.0, ref)
+        assert np.array_equal(out[a:b], ref)
+    assert out.any()
 
 
 def _worst_numpy(j, uv, vel, off, p, R, t, td, min_depth, max_depth):

@@ -26,7 +26,7 @@ from factors.stereo import StereoRig, make_stereo_track, stereo_anchor_jacobian,
 from vio.backend.config import BackendConfig, CalibConfig, InitConfig
 from vio.backend.init import InitialState
 from vio.backend.landmarks import Track
-from vio.backend.td_velocity import predicted_velocities
+from vio.backend.td_velocity import points_velocities, predicted_velocities
 
 
 X = gtsam.symbol_shorthand.X
@@ -39,6 +39,10 @@ P = gtsam.symbol_shorthand.P   # world-point landmarks (vio.backend.point_tracks
 
 EXTRINSIC = E(0)
 TD = D(0)
+# the place a factor holds in an update's graph until the update's factors are built
+# together and put there with NonlinearFactorGraph.replace (vio.backend.tracks,
+# vio.backend.point_tracks); never reaches the smoother
+SLOT = gtsam.PriorFactorVector(0, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 1.0))
 
 
 def state_priors(k: int, state: InitialState, cfg: InitConfig,
@@ -385,4 +389,6 @@ def compile_kernels() -> None:
     z2, z3 = np.zeros((1, 2)), np.zeros((1, 3))
     predicted_velocities(np.zeros(1, np.int64), z2, z2, np.ones(1, np.bool_), z2, z2, T[None, :3, :3].copy(),
                          z3, z3, z3, 1.0, np.eye(3), np.zeros(3), 0.1, 5.0, z2.copy(), z2.copy())
+    points_velocities(np.array([0, 1]), np.zeros(1, np.int64), T[None, :3, :3].copy(), z3, z3, z3, z3.copy(), z2.copy(),
+                      0.1, 5.0, 20.0, z2.copy())
     transfer_point(T, T, T, 1.0, np.zeros(2))   # the depth-transfer factor of a re-anchoring

@@ -32,7 +32,7 @@ from factors.jit import njit
 from factors.world_point import world_point_factor
 from vio.backend import graph
 from vio.backend.landmarks import Obs
-from vio.backend.td_velocity import point_velocities
+from vio.backend.td_velocity import points_velocities
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -105,42 +105,46 @@ class PointTracks:
         stamps[pt.key] = t
         self.tracks[lid] = pt
 
-    def _velocities(self, obs: list[Obs], frames: list[int], p_w: np.ndarray) -> np.ndarray:
-        """(n, 2) image velocities (normalized units/s) multiplying td: with
-        ``td_velocity = "predicted"`` (the default) those of ``p_w`` seen by a camera moving
-        as the state says (``vio.backend.motion.motion_table``: ``dp_c/dt = -w x p_c - v``),
-        so pixel noise does not pull td towards zero; zero where the prediction is
-        further than ``td_velocity_gate`` from the measurement or the point is not in
-        front; the measured ones otherwise. Capped at ``td_velocity_max``. Compiled
-        (``vio.backend.td_velocity.point_velocities``: 31 -> 0.8 us, the same bits)."""
-        vc = self.est.cfg.vision
-        meas = graph._td_velocity(np.array([o.velocity for o in obs]), vc.td_velocity_max)
-        if vc.td_velocity != "predicted" or self._table is None:
-            return meas
-        pos, R, t, w, v = self._table()
-        out = np.empty((len(frames), 2))
-        point_velocities(np.array([pos[f] for f in frames], dtype=np.int64), R, t, w, v,
-                         np.ascontiguousarray(p_w, dtype=float), meas, float(vc.min_depth_m),
-                         float(vc.td_velocity_gate), float(vc.td_velocity_max), out)
-        return out
-
-    def _factor(self, pt: PointTrack, frames: list[int], p_w: np.ndarray | None = None) -> gtsam.NonlinearFactor:
-        """The world-point factor of ``pt``'s observations in ``frames``: each moved by
-        ``(td + offset) vel`` (:meth:`_velocities` at ``p_w``, default the estimate; offset:
-        the rolling-shutter row delay minus the td its keyframe time holds)."""
+    def _factors(self, jobs: list[tuple[PointTrack, list[int], list[Obs], np.ndarray | None]]
+                 ) -> list[gtsam.NonlinearFactor]:
+        """The world-point factor of each ``(point, frames, obs, p_w)`` job: the
+        observations ``obs`` made in ``frames``, each moved by ``(td + offset) vel``; ``vel`` the image velocities
+        multiplying td (normalized units/s): with ``td_velocity = "predicted"`` (the
+        default) those of ``p_w`` (None: the estimate) seen by a camera moving as the state
+        says (``vio.backend.motion.motion_table``: ``dp_c/dt = -w x p_c - v``), so pixel
+        noise does not pull td towards zero, zero where the prediction is further than
+        ``td_velocity_gate`` from the measurement or the point is not in front; the measured
+        ones otherwise; capped at ``td_velocity_max``. ``offset``: the rolling-shutter row
+        delay minus the td its keyframe time holds. All jobs' observations in one array
+        (``Obs.packed``), the velocities in one compiled pass
+        (``vio.backend.td_velocity.points_velocities``)."""
+        if not jobs:
+            return []
         est, vc = self.est, self.est.cfg.vision
-        obs = [pt.obs[f] for f in frames]
-        vel = self._velocities(obs, frames, np.asarray(est.values.atVector(pt.key) if p_w is None else p_w, float))
-        off = graph._row_offsets(obs, est.cam.line_time_s)
+        P = np.array([o.packed for *_, obs, _ in jobs for o in obs], float).reshape(-1, 11)
+        start = np.zeros(len(jobs) + 1, np.int64)
+        np.cumsum([len(fr) for _, fr, _, _ in jobs], out=start[1:])
+        vel = graph._td_velocity(P[:, 2:4], vc.td_velocity_max)
+        off = graph.row_offsets(P[:, 4], P[:, 5], est.cam.line_time_s)
+        uv = np.ascontiguousarray(P[:, 0:2])
+        if vc.td_velocity == "predicted" and self._table is not None:
+            pos, R, t, w, v = self._table()
+            idx = np.array([pos[f] for _, fr, _, _ in jobs for f in fr], np.int64)
+            p_w = np.array([est.values.atVector(pt.key) if p is None else p for pt, _, _, p in jobs],
+                           float).reshape(-1, 3)
+            meas, vel = vel, np.empty_like(vel)
+            points_velocities(start, idx, R, t, w, v, p_w, meas, float(vc.min_depth_m), float(vc.td_velocity_gate),
+                              float(vc.td_velocity_max), vel)
         kernel = (_KERNELS[vc.kernel], float(vc.kernel_k))
-        return world_point_factor(pt.key, [graph.X(f) for f in frames], graph.TD if vc.use_td else None,
-                                  est.values.atPose3(graph.EXTRINSIC), np.array([o.uv for o in obs]), vel, off,
-                                  est.sigma, kernel)
+        T_b_c, td_key = est.values.atPose3(graph.EXTRINSIC), graph.TD if vc.use_td else None
+        return [world_point_factor(pt.key, [graph.X(f) for f in fr], td_key, T_b_c, uv[a:b], vel[a:b], off[a:b],
+                                   est.sigma, kernel)
+                for (pt, fr, _, _), a, b in zip(jobs, start[:-1], start[1:])]
 
     def _main(self, pt: PointTrack, frames: list[int], g: gtsam.NonlinearFactorGraph,
               p_w: np.ndarray | None = None) -> None:
         self._pending.append((pt, int(g.size())))
-        g.add(self._factor(pt, frames, p_w))
+        g.add(self._factors([(pt, frames, [pt.obs[f] for f in frames], p_w)])[0])
         pt.frames, pt.index = frames, None
 
     def prepare_update(self, k: int, t: float, leave: set[int], g: gtsam.NonlinearFactorGraph,
@@ -152,6 +156,7 @@ class PointTracks:
         whole froze its in-window observations too (``bench_midflight`` MH_04@40 0.234 ->
         0.319%, MH_05@40 0.136 -> 0.214%, ~20% less CPU). Points with no observation left
         in the window are forgotten."""
+        jobs, slots = [], []    # the factors, built together into their slots of g
         for lid in list(self.tracks):
             pt = self.tracks[lid]
             gone = [f for f in pt.frames if f in leave]
@@ -161,15 +166,24 @@ class PointTracks:
             if pt.index is not None:
                 removals.append(pt.index)
             if gone:
-                g.add(self._factor(pt, gone))
+                jobs.append((pt, gone, [pt.obs[f] for f in gone], None))
+                slots.append(int(g.size()))
+                g.add(graph.SLOT)
             for f in [f for f in pt.obs if f in leave]:
                 del pt.obs[f]
             if not pt.obs:
                 del self.tracks[lid]
                 continue
-            self._main(pt, sorted(pt.obs), g)
+            frames = sorted(pt.obs)
+            self._pending.append((pt, int(g.size())))
+            jobs.append((pt, frames, [pt.obs[f] for f in frames], None))
+            slots.append(int(g.size()))
+            g.add(graph.SLOT)
+            pt.frames, pt.index = frames, None
             if live:
                 stamps[pt.key] = t
+        for slot, factor in zip(slots, self._factors(jobs)):
+            g.replace(slot, factor)
 
     def record_factor_indices(self, indices: list[int]) -> None:
         for pt, pos in self._pending:
@@ -197,9 +211,7 @@ class PointTracks:
             return []
         # every candidate's observations in one array, one compiled pass (~60 points of ~8
         # observations: 3.8 -> ~0.6 ms a keyframe on generated MH_03)
-        rows = [(o.uv[0], o.uv[1], o.velocity[0], o.velocity[1], o.row, o.td_obs)
-                for _, pt in cand for o in (pt.obs[f] for f in pt.frames)]
-        ob = np.array(rows, dtype=float).reshape(-1, 6)
+        ob = np.array([pt.obs[f].packed for _, pt in cand for f in pt.frames], dtype=float).reshape(-1, 11)
         start = np.cumsum([0] + [len(pt.frames) for _, pt in cand]).astype(np.int64)
         j = np.array([pos[f] for _, pt in cand for f in pt.frames], dtype=np.int64)
         P = np.array([values.atVector(pt.key) for _, pt in cand], dtype=float).reshape(-1, 3)

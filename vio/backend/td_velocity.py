@@ -132,3 +132,14 @@ def point_velocities(idx: np.ndarray, R: np.ndarray, t: np.ndarray, w: np.ndarra
         if not np.sqrt(p0 * p0 + p1 * p1) <= vmax:
             p0, p1 = 0.0, 0.0
         out[o, 0], out[o, 1] = p0, p1
+
+
+@_njit
+def points_velocities(start: np.ndarray, idx: np.ndarray, R: np.ndarray, t: np.ndarray, w: np.ndarray,
+                      v: np.ndarray, p_w: np.ndarray, meas: np.ndarray, min_depth: float, gate: float,
+                      vmax: float, out: np.ndarray) -> None:
+    """:func:`point_velocities` of each point ``p_w[i]`` (N, 3) over its observations
+    ``start[i]:start[i + 1]`` (rows of ``idx``, ``meas`` and ``out``)."""
+    for i in range(p_w.shape[0]):
+        a, b = start[i], start[i + 1]
+        point_velocities(idx[a:b], R, t, w, v, p_w[i], meas[a:b], min_depth, gate, vmax, out[a:b])

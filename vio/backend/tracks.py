@@ -31,9 +31,6 @@ if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
 
 WEAK = gtsam.noiseModel.Isotropic.Sigma(1, 10.0)
-# the slot a landmark factor holds in an update's graph until the update's factors are
-# built together (LandmarkManager._build_deferred); never reaches the smoother
-_SLOT = gtsam.PriorFactorVector(0, np.zeros(1), WEAK)
 
 
 class LandmarkManager:
@@ -252,7 +249,7 @@ class LandmarkManager:
         smoother index is recorded), built by :meth:`_build_deferred`."""
         self._pending.append((tr, int(g.size())))
         self._deferred.append((tr, tr.frames(), lam, int(g.size())))
-        g.add(_SLOT)
+        g.add(graph.SLOT)
 
     def _members(self, items: list[tuple[Track, list[int], float]], k: int,
                  pred: gtsam.NavState) -> list[Member]:
