@@ -61,6 +61,8 @@ def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s):
     print(f"point {e.ate_rmse:.4f} anchor {a.ate_rmse:.4f} m over {e.path_length:.1f} m")
     # one 12-s excerpt moves by centimetres with any solver setting (point / anchor:
     # relinearization every 10th update 0.062 / 0.064 m, every update 0.060 / 0.049 m,
-    # with the gauge prior 0.054 / 0.042 m); which representation is better was decided
-    # on 20 excerpts (vio.modes), so this bounds the gap instead of ranking them
-    assert e.ate_rmse < 0.01 * e.path_length and e.ate_rmse <= 1.35 * a.ate_rmse
+    # with the gauge prior 0.054 / 0.042 m, points relinearized at 5 cm 0.061 / 0.042 m);
+    # which representation is better was decided on 20 excerpts (vio.modes), and the
+    # points' threshold on 20 excerpts, 49 table rows and the real V1_01 tracks
+    # (SolverConfig), so this bounds the gap instead of ranking them
+    assert e.ate_rmse < 0.01 * e.path_length and e.ate_rmse <= 1.5 * a.ate_rmse

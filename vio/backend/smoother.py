@@ -41,14 +41,15 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def _threshold_map(general: float, td: float,
-                   extra: dict[str, int] | None = None) -> gtsam.ISAM2ThresholdMap:
+def _threshold_map(general: float, td: float, extra: dict[str, int] | None = None,
+                   point: float | None = None) -> gtsam.ISAM2ThresholdMap:
     """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
-    step and would never cross the general threshold."""
+    step and would never cross the general threshold; world points (m) at ``point``
+    (None: the general one)."""
     m = gtsam.ISAM2ThresholdMap()
     dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, "z": 1, **(extra or {})}
     for ch, dim in dims.items():
-        m.insert((ch, np.full(dim, general)))
+        m.insert((ch, np.full(dim, point if ch == "p" and point is not None else general)))
     m.insert(("d", np.array([td])))
     return m
 
@@ -59,7 +60,8 @@ def make(s: SolverConfig, extra_dims: dict[str, int] | None = None,
     key character -> dimension of the factor sources' variables (relinearization thresholds)."""
     p = gtsam.ISAM2Params()
     p.setFactorization(factorization or s.factorization)
-    p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold, extra_dims))
+    p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold, extra_dims,
+                                            s.point_relinearize_threshold))
     p.relinearizeSkip = s.relinearize_skip
     p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
     # iSAM2 skips updating variables whose change is below the wildfire threshold
