@@ -108,16 +108,16 @@ class PointTracks:
     def _factors(self, jobs: list[tuple[PointTrack, list[int], list[Obs], np.ndarray | None]]
                  ) -> list[gtsam.NonlinearFactor]:
         """The world-point factor of each ``(point, frames, obs, p_w)`` job: the
-        observations ``obs`` made in ``frames``, each moved by ``(td + offset) vel``; ``vel`` the image velocities
-        multiplying td (normalized units/s): with ``td_velocity = "predicted"`` (the
-        default) those of ``p_w`` (None: the estimate) seen by a camera moving as the state
-        says (``vio.backend.motion.motion_table``: ``dp_c/dt = -w x p_c - v``), so pixel
-        noise does not pull td towards zero, zero where the prediction is further than
-        ``td_velocity_gate`` from the measurement or the point is not in front; the measured
-        ones otherwise; capped at ``td_velocity_max``. ``offset``: the rolling-shutter row
-        delay minus the td its keyframe time holds. All jobs' observations in one array
-        (``Obs.packed``), the velocities in one compiled pass
-        (``vio.backend.td_velocity.points_velocities``)."""
+        observations ``obs`` made in ``frames``, each moved by ``(td + offset) vel``.
+        ``vel``: the image velocities multiplying td (normalized units/s); with
+        ``td_velocity = "predicted"`` (the default) those of ``p_w`` (None: the estimate)
+        seen by a camera moving as the state says (``vio.backend.motion.motion_table``:
+        ``dp_c/dt = -w x p_c - v``), so pixel noise does not pull td towards zero, zero
+        where the prediction is further than ``td_velocity_gate`` from the measurement or
+        the point is not in front; the measured ones otherwise; capped at
+        ``td_velocity_max``. ``offset``: the rolling-shutter row delay minus the td its
+        keyframe time holds. All jobs' observations in one array (``Obs.packed``), the
+        velocities in one compiled pass (``vio.backend.td_velocity.points_velocities``)."""
         if not jobs:
             return []
         est, vc = self.est, self.est.cfg.vision
