@@ -107,9 +107,15 @@ def test_identity_rebuild_keeps_the_state():
     """Rebuilding the smoother from its own factors (marginal factors re-anchored at its
     linearization point) and iterating both to convergence: the keyframes agree within
     3 mm (the smoother itself moves ~5 mm over those iterations: iSAM2 relinearizes
-    lazily)."""
-    ref = _converged(_pipeline(160)[0].est)   # ~8 s of V1_01: flying, marginal factors present
-    pipe, it = _pipeline(160)
+    lazily). The world points at the general relinearization threshold: at their own
+    5 cm (the default) the never-rebuilt smoother keeps them lazier still (3.4 mm), which
+    is iSAM2's laziness, not the rebuild's error."""
+    from vio.run import default_config
+    cfg = default_config("features")
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, solver=dataclasses.replace(
+        cfg.backend.solver, point_relinearize_threshold=None)))
+    ref = _converged(_pipeline(160, cfg)[0].est)   # ~8 s of V1_01: flying, marginal factors present
+    pipe, it = _pipeline(160, cfg)
     est = pipe.est
     assert _n_marginal(est) > 0
     apply_similarity(est, Similarity(1.0, gtsam.Rot3(), np.zeros(3), est.extrinsic().translation()))
