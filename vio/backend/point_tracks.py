@@ -33,6 +33,7 @@ from factors.world_point import world_point_factor
 from vio.backend import graph
 from vio.backend.landmarks import Obs
 from vio.backend.td_velocity import points_velocities
+from vio.backend.track_arrays import gather
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -121,11 +122,8 @@ class PointTracks:
         if not jobs:
             return []
         est, vc = self.est, self.est.cfg.vision
-        P = np.array([o.packed for *_, obs, _ in jobs for o in obs], float).reshape(-1, 11)
-        start = np.zeros(len(jobs) + 1, np.int64)
-        np.cumsum([len(fr) for _, fr, _, _ in jobs], out=start[1:])
+        P, start, off = gather([obs for _, _, obs, _ in jobs], est.cam.line_time_s)
         vel = graph._td_velocity(P[:, 2:4], vc.td_velocity_max)
-        off = graph.row_offsets(P[:, 4], P[:, 5], est.cam.line_time_s)
         uv = np.ascontiguousarray(P[:, 0:2])
         if vc.td_velocity == "predicted" and self._table is not None:
             pos, R, t, w, v = self._table()
@@ -211,12 +209,10 @@ class PointTracks:
             return []
         # every candidate's observations in one array, one compiled pass (~60 points of ~8
         # observations: 3.8 -> ~0.6 ms a keyframe on generated MH_03)
-        ob = np.array([pt.obs[f].packed for _, pt in cand for f in pt.frames], dtype=float).reshape(-1, 11)
-        start = np.cumsum([0] + [len(pt.frames) for _, pt in cand]).astype(np.int64)
+        ob, start, off = gather([[pt.obs[f] for f in pt.frames] for _, pt in cand], self.est.cam.line_time_s)
         j = np.array([pos[f] for _, pt in cand for f in pt.frames], dtype=np.int64)
         P = np.array([values.atVector(pt.key) for _, pt in cand], dtype=float).reshape(-1, 3)
         vel = graph._td_velocity(ob[:, 2:4], vc.td_velocity_max)
-        off = graph.row_offsets(ob[:, 4], ob[:, 5], self.est.cam.line_time_s)
         worst = np.empty(len(cand))
         point_worst_errors(start, j, np.ascontiguousarray(ob[:, :2]), vel, off, P, R, t, td,
                            float(vc.min_depth_m), float(vc.max_depth_m), worst)

@@ -22,7 +22,7 @@ import numpy as np
 from factors.jit import njit as _njit
 from factors.projection import tangent_basis
 from vio.backend.graph import _zero_fast_rows, row_offsets
-from vio.backend.landmarks import Track
+from vio.backend.landmarks import Obs, Track
 from vio.backend.td_velocity import predicted_velocities
 
 _NO_RIG = (np.eye(3), np.zeros(3))        # cam1 placeholders without a rig (never read)
@@ -62,9 +62,8 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
     of every td velocity; ``line_time_s`` the rolling shutter's row time."""
     if not items:
         return []
-    n_obs = np.array([len(fr) for _, fr, _ in items], np.int64)
-    start = _offsets(n_obs)
-    P = np.array([tr.obs[f].packed for tr, fr, _ in items for f in fr], float).reshape(-1, 11)
+    P, start, off = gather([[tr.obs[f] for f in fr] for tr, fr, _ in items], line_time_s)
+    n_obs = np.diff(start)
     has_r = P[:, 6] > 0
     n_r = np.add.reduceat(has_r.astype(np.int64), start[:-1]) if stereo else np.zeros(len(items), np.int64)
     n_rows = n_obs - 1 + n_r
@@ -82,7 +81,6 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
     R10, t01 = _NO_RIG if rig_c1 is None else rig_c1
     c = np.ascontiguousarray
     uv_o, meas, ruv, rmeas = c(P[:, 0:2]), c(P[:, 2:4]), c(P[:, 7:9]), c(P[:, 9:11])
-    off = row_offsets(P[:, 4], P[:, 5], line_time_s)
     rstart = _offsets(n_rows)
     m = int(rstart[-1])
     v0, rv = np.empty((len(P), 2)), np.empty((len(P), 2))
@@ -99,6 +97,16 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
         out.append(TrackRows(uv[r0:r1], vel[r0:r1], target[r0:r1], right[r0:r1], offset[r0:r1],
                              basis[r0:r1], uv_o[s], v0[s], float(off[s])))
     return out
+
+
+def gather(groups: list[list[Obs]], line_time_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observations of every group (one landmark's, in its frames' order) in one
+    array: ``P`` (N, 11) their ``Obs.packed`` rows, ``start`` (G + 1,) where each group's
+    rows begin (and the total), ``off`` (N,) their row offsets (s, ``graph.row_offsets``
+    at ``line_time_s``)."""
+    P = np.array([o.packed for obs in groups for o in obs], float).reshape(-1, 11)
+    start = _offsets(np.array([len(obs) for obs in groups], np.int64))
+    return P, start, row_offsets(P[:, 4], P[:, 5], line_time_s)
 
 
 def _offsets(counts: np.ndarray) -> np.ndarray:
