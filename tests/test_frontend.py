@@ -139,10 +139,13 @@ def static_set():
             image_list(mav0, "cam0"), image_list(mav0, "cam1"))
 
 
-def test_tracking_recovers_known_shifts(static_set) -> None:
+@pytest.mark.parametrize("contrast", ["none", "sqrt"])
+def test_tracking_recovers_known_shifts(static_set, contrast: str) -> None:
+    """A fixed tone curve commutes with a shift of the image; CLAHE's tile grid does not
+    (its curves follow the content of each tile), which is why it is not tested here."""
     _, cam0, _, frames0, _ = static_set
     img = gray(frames0[0][1])
-    cfg = FrontendConfig(clahe=False)   # CLAHE's tile grid is not shift-invariant
+    cfg = FrontendConfig(contrast=contrast)
     fe = Frontend(cam0, None, cfg)
     first = fe.process(0, img)
     assert len(first) >= 50 and np.all(first.track_len == 1)
@@ -153,7 +156,11 @@ def test_tracking_recovers_known_shifts(static_set) -> None:
         common, ia, ib = np.intersect1d(first.ids, fr.ids, return_indices=True)
         assert len(common) >= 0.9 * len(first), f"shift {dx, dy}: lost ids"
         err = np.linalg.norm(fr.px[ib] - first.px[ia] - [dx, dy], axis=1)
-        assert np.percentile(err, 95) < 0.1 and err.max() < 0.15, f"shift {dx, dy}: {err.max():.3f} px"
+        # with the square-root curve one more corner is found 9 px from the right edge,
+        # where the LK window leaves the image: 0.21 px off after the round trip (the raw
+        # image's worst is 0.09 px; the 95th percentiles agree)
+        worst = 0.15 if contrast == "none" else 0.25
+        assert np.percentile(err, 95) < 0.1 and err.max() < worst, f"shift {dx, dy}: {err.max():.3f} px"
         assert np.all(fr.track_len[ib] == k + 1)
 
 
@@ -173,7 +180,7 @@ def test_rotation_prediction_hook(static_set) -> None:
     img = gray(frames0[0][1])
     R = gtsam.Rot3.Ypr(0.005, 0.06, 0.03).matrix()          # ~28 px pan, ~14 px tilt
     img2 = rotated_view(cam, img, R)
-    cfg = FrontendConfig(clahe=False, lk_levels=0)          # no pyramid: only a guess helps
+    cfg = FrontendConfig(contrast="none", lk_levels=0)          # no pyramid: only a guess helps
     results = {}
     for use_hook in (False, True):
         fe = Frontend(cam0, None, cfg)
@@ -253,8 +260,8 @@ def test_feature_frame_conversion(static_run) -> None:
 
 # --- configuration and bad input ------------------------------------------------------
 def test_config_loads_strictly() -> None:
-    cfg = from_dict(FrontendConfig, {"max_features": 200, "clahe": False, "ransac_model": "essential"})
-    assert cfg.max_features == 200 and not cfg.clahe and cfg.ransac_model == "essential"
+    cfg = from_dict(FrontendConfig, {"max_features": 200, "contrast": "clahe", "ransac_model": "essential"})
+    assert cfg.max_features == 200 and cfg.contrast == "clahe" and cfg.ransac_model == "essential"
     with pytest.raises(ConfigError, match="max_feature"):
         from_dict(FrontendConfig, {"max_feature": 10})
     with pytest.raises(ConfigError, match="min_dist_px"):

@@ -56,6 +56,11 @@ MODE_DEFAULTS["hybrid"]["backend"]["vision"]["max_landmarks"] = 40
 # 3.9 / 3.1 mm. 100 and 75 save 0.3-0.8 s more but give 6.9 / 6.5 mm on real MH_01
 # (stereo 6.3)
 MODE_DEFAULTS["hybrid"]["frontend"] = {"max_features": 120}
+# hybrid keeps CLAHE (the other KLT modes track on the square-root tone curve,
+# FrontendConfig.contrast): real MH_01 from frames 10, 20, ..., 220, mean ATE CLAHE 5.04 /
+# sqrt 5.21 mm (sqrt better on 2 of 22); renders sim11 / sim14, 6 stretches each, 9.68 /
+# 1.95 -> 9.56 / 1.97 mm. Stereo, the same 22 stretches: 6.10 -> 5.61 mm
+MODE_DEFAULTS["hybrid"]["frontend"]["contrast"] = "clahe"
 # features: triangulated tracks become world points (vio.backend.point_tracks): the anchored
 # inverse depths left generated mid-flight excerpts 0.5-2% short (bench_midflight MH_04@40
 # 0.378 -> 0.235%, MH_05@40 0.312 -> 0.165%; unseen starts MH_05@55 0.635 -> 0.188%, MH_03@80

@@ -42,8 +42,13 @@ class FrontendConfig:
     ransac_model: Literal["fundamental", "essential"] = "fundamental"
     ransac_threshold_px: float = 1.0
     ransac_confidence: float = 0.99
-    # contrast equalisation
-    clahe: bool = True              # VINS-Fusion's EuRoC setting (equalize: 1)
+    # the tone curve applied before tracking and detection (``vio.frontend.tracker.Preprocess``):
+    # "sqrt": a fixed square-root curve (the variance-stabilising transform of shot noise:
+    # every grey level gets the same noise, dark regions their share of contrast); "clahe":
+    # VINS-Fusion's EuRoC setting (equalize: 1), a curve fitted to each tile's histogram,
+    # so a patch's grey levels change as the scene moves through the grid, which LK reads
+    # as motion; "none": the raw image. Measured in benchmarks/README.md (tenth round).
+    contrast: Literal["sqrt", "clahe", "none"] = "sqrt"
     clahe_clip: float = 3.0
     clahe_tiles: int = 8
     # stereo matching cam0 -> cam1
@@ -94,5 +99,7 @@ class FrontendConfig:
             raise ValueError("FrontendConfig.ransac_confidence must be in (0, 1)")
         if not 0 <= self.worker_nice <= 19:
             raise ValueError(f"FrontendConfig.worker_nice must be in 0..19, got {self.worker_nice}")
+        if self.contrast not in ("sqrt", "clahe", "none"):
+            raise ValueError(f"FrontendConfig.contrast must be 'sqrt', 'clahe' or 'none', got {self.contrast!r}")
         if self.max_depth_m <= self.min_depth_m:
             raise ValueError("FrontendConfig.max_depth_m must exceed min_depth_m")

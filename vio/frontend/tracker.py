@@ -1,6 +1,6 @@
 """Monocular VINS-style KLT feature tracking on one camera.
 
-Per frame: optional CLAHE; pyramidal Lucas-Kanade from the previous frame (initial
+Per frame: a tone curve (``FrontendConfig.contrast``); pyramidal Lucas-Kanade from the previous frame (initial
 guess = previous pixel, or the rotation-only prediction when the caller passes the
 inter-frame camera rotation); forward-backward check; RANSAC on undistorted
 points; a spatial mask of radius ``min_dist_px`` around surviving tracks (longest
@@ -161,18 +161,27 @@ class MonoTracks:
     image: np.ndarray
 
 
+# 255 sqrt(v / 255), rounded: the fixed tone curve of ``FrontendConfig.contrast: sqrt``
+SQRT_LUT = np.round(255.0 * np.sqrt(np.arange(256) / 255.0)).astype(np.uint8)
+
+
 class Preprocess:
-    """Validate and (optionally) CLAHE-equalise images of one camera (OpenCV's CLAHE, bit
-    for bit, 3x faster: ``vio.frontend.clahe``). One per thread: the equaliser keeps
-    working buffers between calls."""
+    """Validate images of one camera and apply the tone curve ``cfg.contrast``: the fixed
+    square-root curve (a lookup table), CLAHE (OpenCV's, bit for bit, 3x faster:
+    ``vio.frontend.clahe``) or none. One per thread: the equaliser keeps working buffers
+    between calls."""
 
     def __init__(self, cam: Camera, cfg: FrontendConfig) -> None:
         self.cam = cam
-        self._clahe = Clahe(cfg.clahe_clip, (cfg.clahe_tiles, cfg.clahe_tiles)) if cfg.clahe else None
+        self.contrast = cfg.contrast
+        self._clahe = (Clahe(cfg.clahe_clip, (cfg.clahe_tiles, cfg.clahe_tiles))
+                       if cfg.contrast == "clahe" else None)
 
     def __call__(self, img: np.ndarray, what: str) -> np.ndarray:
         img = check_image(img, self.cam, what)
-        return self._clahe.apply(img) if self._clahe is not None else img
+        if self._clahe is not None:
+            return self._clahe.apply(img)
+        return cv2.LUT(img, SQRT_LUT) if self.contrast == "sqrt" else img
 
 
 class KltTracker:
