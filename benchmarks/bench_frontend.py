@@ -1,7 +1,7 @@
 """Benchmark the image front end on the real EuRoC static stereo pairs (752x480).
 
 Usage: python benchmarks/bench_frontend.py [--data ../shared/data/euroc_V1_01_static_stereo]
-                                           [--repeats 3] [--no-clahe]
+                                           [--repeats 3] [--contrast sqrt|clahe|none]
 
 Prints ms per frame (mean, p95, max) for mono tracking (cam0) and stereo tracking
 (cam0 + LK matching into cam1), on the still images as recorded and on a
@@ -73,7 +73,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--no-clahe", action="store_true")
+    ap.add_argument("--contrast", choices=("sqrt", "clahe", "none"), default="sqrt",
+                    help="tone curve before tracking (FrontendConfig.contrast)")
     args = ap.parse_args()
     mav0 = args.data / "mav0"
     if not mav0.is_dir():
@@ -81,9 +82,9 @@ def main() -> None:
     cam0, cam1 = load_calib(mav0, "cam0"), load_calib(mav0, "cam1")
     t_ns, imgs0 = load_images(mav0, "cam0")
     _, imgs1 = load_images(mav0, "cam1")
-    cfg = FrontendConfig(clahe=not args.no_clahe)
+    cfg = FrontendConfig(contrast=args.contrast)
     print(f"{len(t_ns)} frames {imgs0[0].shape[1]}x{imgs0[0].shape[0]}, repeats={args.repeats}, "
-          f"max_features={cfg.max_features}, clahe={cfg.clahe}, cv2 {cv2.__version__}, "
+          f"max_features={cfg.max_features}, contrast={cfg.contrast}, cv2 {cv2.__version__}, "
           f"threads={cv2.getNumThreads()}")
     print(f"{'scene':8s} {'mode':7s} {'mean ms':>8s} {'p95 ms':>8s} {'max ms':>8s} "
           f"{'features':>8s} {'stereo':>7s}")
