@@ -102,7 +102,9 @@ class PointTracks:
         v.insert(pt.key, np.asarray(p_w, float))
         sigma = self.est.cfg.vision.point_prior_sigma_m
         g.add(gtsam.PriorFactorVector(pt.key, np.asarray(p_w, float), gtsam.noiseModel.Isotropic.Sigma(3, sigma)))
-        self._main(pt, sorted(pt.obs), g, p_w)
+        jobs: list = []
+        self._main(pt, sorted(pt.obs), g, jobs, p_w)
+        self._fill(g, jobs)
         stamps[pt.key] = t
         self.tracks[lid] = pt
 
@@ -139,10 +141,22 @@ class PointTracks:
                                    est.sigma, kernel)
                 for (pt, fr, _, _), a, b in zip(jobs, start[:-1], start[1:])]
 
-    def _main(self, pt: PointTrack, frames: list[int], g: gtsam.NonlinearFactorGraph,
+    def _reserve(self, jobs: list, pt: PointTrack, frames: list[int], g: gtsam.NonlinearFactorGraph,
+                 p_w: np.ndarray | None = None) -> None:
+        """Hold a slot of ``g`` for the factor of ``pt``'s observations in ``frames``;
+        :meth:`_fill` builds the jobs' factors together and puts them there."""
+        jobs.append(((pt, frames, [pt.obs[f] for f in frames], p_w), int(g.size())))
+        g.add(graph.SLOT)
+
+    def _fill(self, g: gtsam.NonlinearFactorGraph, jobs: list) -> None:
+        for (_, slot), factor in zip(jobs, self._factors([job for job, _ in jobs])):
+            g.replace(slot, factor)
+
+    def _main(self, pt: PointTrack, frames: list[int], g: gtsam.NonlinearFactorGraph, jobs: list,
               p_w: np.ndarray | None = None) -> None:
+        """Reserve ``pt``'s main factor (its smoother index is recorded)."""
         self._pending.append((pt, int(g.size())))
-        g.add(self._factors([(pt, frames, [pt.obs[f] for f in frames], p_w)])[0])
+        self._reserve(jobs, pt, frames, g, p_w)
         pt.frames, pt.index = frames, None
 
     def prepare_update(self, k: int, t: float, leave: set[int], g: gtsam.NonlinearFactorGraph,
@@ -154,7 +168,7 @@ class PointTracks:
         whole froze its in-window observations too (``bench_midflight`` MH_04@40 0.234 ->
         0.319%, MH_05@40 0.136 -> 0.214%, ~20% less CPU). Points with no observation left
         in the window are forgotten."""
-        jobs, slots = [], []    # the factors, built together into their slots of g
+        jobs: list = []    # the factors, built together into their slots of g
         for lid in list(self.tracks):
             pt = self.tracks[lid]
             gone = [f for f in pt.frames if f in leave]
@@ -164,24 +178,16 @@ class PointTracks:
             if pt.index is not None:
                 removals.append(pt.index)
             if gone:
-                jobs.append((pt, gone, [pt.obs[f] for f in gone], None))
-                slots.append(int(g.size()))
-                g.add(graph.SLOT)
+                self._reserve(jobs, pt, gone, g)
             for f in [f for f in pt.obs if f in leave]:
                 del pt.obs[f]
             if not pt.obs:
                 del self.tracks[lid]
                 continue
-            frames = sorted(pt.obs)
-            self._pending.append((pt, int(g.size())))
-            jobs.append((pt, frames, [pt.obs[f] for f in frames], None))
-            slots.append(int(g.size()))
-            g.add(graph.SLOT)
-            pt.frames, pt.index = frames, None
+            self._main(pt, sorted(pt.obs), g, jobs)
             if live:
                 stamps[pt.key] = t
-        for slot, factor in zip(slots, self._factors(jobs)):
-            g.replace(slot, factor)
+        self._fill(g, jobs)
 
     def record_factor_indices(self, indices: list[int]) -> None:
         for pt, pos in self._pending:

@@ -47,7 +47,7 @@ class FrontendConfig:
     # every grey level gets the same noise, dark regions their share of contrast); "clahe":
     # VINS-Fusion's EuRoC setting (equalize: 1), a curve fitted to each tile's histogram,
     # so a patch's grey levels change as the scene moves through the grid, which LK reads
-    # as motion; "none": the raw image. Measured in benchmarks/README.md (tenth round).
+    # as motion; "none": the raw image. Measured in benchmarks/README.md (the tone curve).
     contrast: Literal["sqrt", "clahe", "none"] = "sqrt"
     clahe_clip: float = 3.0
     clahe_tiles: int = 8
