@@ -17,7 +17,9 @@ from vio.io.types import GroundTruth
 @dataclass(frozen=True)
 class TrajectoryErrors:
     """ATE (absolute translation error, m) and RPE (relative pose error over
-    ``rpe_delta_m`` metres of path: translation m, rotation deg) statistics."""
+    ``rpe_delta_m`` metres of path: translation m, rotation deg) statistics. ``scale``:
+    the Sim3 alignment's scale s (ground truth ~ s R estimate + t; s > 1: the estimated
+    trajectory is short), 1 with SE3."""
 
     n_matched: int
     ate_rmse: float
@@ -27,6 +29,7 @@ class TrajectoryErrors:
     rpe_rot_rmse_deg: float
     path_length: float
     alignment: str
+    scale: float = 1.0
 
 
 def _evo_traj(t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray):
@@ -65,7 +68,7 @@ def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt
     if est.num_poses < 3:
         raise ValueError(f"only {est.num_poses} poses match the ground truth in time")
     est = copy.deepcopy(est)
-    est.align(ref, correct_scale=sim3)
+    _, _, scale = est.align(ref, correct_scale=sim3)
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     s = ape.get_all_statistics()
@@ -80,7 +83,7 @@ def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt
     except Exception:  # noqa: BLE001 - too short for the RPE delta
         rpe_t = rpe_r = float("nan")
     return TrajectoryErrors(int(est.num_poses), float(s["rmse"]), float(s["mean"]), float(s["max"]),
-                            float(rpe_t), float(rpe_r), path, "sim3" if sim3 else "se3")
+                            float(rpe_t), float(rpe_r), path, "sim3" if sim3 else "se3", float(scale))
 
 
 def evaluate_files(est_path: str | Path, gt_path: str | Path, sim3: bool = False,

@@ -276,6 +276,9 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
             e = evaluate(*res.arrays(), data.groundtruth)
             lines.append(f"ATE RMSE        {e.ate_rmse:.4f} m (SE3-aligned, {e.n_matched} poses, "
                          f"path {e.path_length:.1f} m)")
+            s = evaluate(*res.arrays(), data.groundtruth, sim3=True)
+            lines.append(f"ATE RMSE Sim3   {s.ate_rmse:.4f} m (the estimate's scale "
+                         f"{100 * (1 / s.scale - 1):+.1f} % against the ground truth)")
     return lines
 
 
