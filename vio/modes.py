@@ -67,6 +67,17 @@ MODE_DEFAULTS["hybrid"]["frontend"]["contrast"] = "clahe"
 # 0.162 -> 0.103%); real V1_01 0.0267 -> 0.0265 m. Mono keeps the anchored inverse depths:
 # real MH_05 starts at frames 0-150 gave a mean 0.127 (anchor) / 0.135 m (points), chaotic
 MODE_DEFAULTS["features"] = {"backend": {"vision": {"reanchor": "point"}}}
+# mono: triangulated tracks become world points too, and the KLT worker keeps 200 tracks 25 px
+# apart instead of 150 at 30 px. The anchored inverse depths left real MH_05 short, and
+# shorter the longer the run (the anchor ray taken as exact; benchmarks/README.md, "World
+# points for mono"). Real MH_05 mono from frames 0, 6, ..., 162 (27 starts), mean ATE /
+# Sim3 ATE / |scale error|: 0.128 / 0.077 m / 2.8 % -> points 0.096 / 0.064 m / 2.0 % ->
+# with 200 tracks 0.082 / 0.061 m / 1.4 % (log ratio -0.36 +- 0.12, better on 19); real
+# MH_01 mono, 22 stretches: 6.22 -> 6.73 -> 6.17 mm (150 tracks alone hurt it there);
+# render sim13, 6 stretches: 10.37 -> 9.13 mm. Cost: main-process CPU on real MH_05
+# 10.3 -> 12.0 s (+16 %; the points alone 10.7 s), worker 7.9 -> 8.5 s
+MODE_DEFAULTS["mono"]["backend"]["vision"]["reanchor"] = "point"
+MODE_DEFAULTS["mono"]["frontend"] = {"max_features": 200, "min_dist_px": 25}
 # direct: no factor of the photometric points involves td (it is unobservable there), so
 # it is held at the sync layer's value (``--td``) instead of being reported as estimated;
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
