@@ -148,11 +148,12 @@ def test_recovers_from_injected_solver_failure(v101, monkeypatch, caplog):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("max_rejections", [1, 3])
-def test_rejected_track_restarts_under_its_id(sim_tracks_exact, max_rejections):
+@pytest.mark.parametrize("max_rejections, when", [(1, "now"), (3, "now"), (3, "next_frame")])
+def test_rejected_track_restarts_under_its_id(sim_tracks_exact, max_rejections, when):
     """A track displaced by ~37 px for three frames is dropped by the outlier check; its
     id comes back as a fresh landmark once the front end tracks it cleanly again, unless
-    it has been dropped ``max_rejections`` times."""
+    it has been dropped ``max_rejections`` times; the same with the removal update held
+    for the next frame (``SolverConfig.outlier_update``)."""
     import dataclasses
     from vio.pipeline import Pipeline
     from vio.sync import packets
@@ -162,8 +163,9 @@ def test_rejected_track_restarts_under_its_id(sim_tracks_exact, max_rejections):
     feats = [dataclasses.replace(f, uv=np.where((f.ids == lid)[:, None], f.uv + [0.08, 0.0], f.uv))
              if 100 <= n < 103 else f for n, f in enumerate(data.features)]
     cfg = PipelineConfig()
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, vision=dataclasses.replace(
-        cfg.backend.vision, max_rejections=max_rejections)))
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
+        cfg.backend, vision=dataclasses.replace(cfg.backend.vision, max_rejections=max_rejections),
+        solver=dataclasses.replace(cfg.backend.solver, outlier_update=when)))
     pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
     back = []
     for n, pkt in enumerate(packets(data.imu, data.cam0.t_ns[:150], cfg.td_s, feats[:150])):

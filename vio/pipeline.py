@@ -167,6 +167,7 @@ class Pipeline:
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
+        self.est.flush_outliers()    # the last keyframe's outlier update (SolverConfig.outlier_update)
         self.est.add_imu(pkt.imu, pkt.imu_ahead, gap=bool(pkt.imu_gaps))
         still = self._still()
         # the IMU resumed in this packet: a keyframe here ends the bridge, the next interval

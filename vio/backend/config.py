@@ -324,7 +324,11 @@ class SolverConfig:
     geometric mean x1.013; 31 generator variants x1.004, within 1.25x of the td 0 twin 7
     -> 10 of 17, under 0.2 % 24 -> 26; 20 mid-flight excerpts 0.0908 -> 0.0901 % with
     generator seed 1, 0.0894 -> 0.0957 % with seed 2). The general threshold at 0.05
-    cost take-offs (V1_03@0 td 0 0.027 -> 0.156 m)."""
+    cost take-offs (V1_03@0 td 0 0.027 -> 0.156 m).
+    ``outlier_update``: the second update that takes the rejected landmarks' factors out
+    after a keyframe's runs at once (``"now"``) or when the next frame arrives
+    (``"next_frame"``, ``vio.backend.outlier_carry``): same updates in the same order, the
+    keyframe's frame does not wait for it."""
 
     lag_s: float = 2.5
     relinearize_threshold: float = 0.01
@@ -335,6 +339,7 @@ class SolverConfig:
     point_relinearize_threshold: float | None = 0.05
     extra_iterations: int = 0
     incremental_padding: bool = True
+    outlier_update: Literal["now", "next_frame"] = "now"
 
 
 @dataclass(frozen=True)

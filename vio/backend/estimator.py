@@ -25,6 +25,7 @@ from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.gauge import GaugeAnchor
+from vio.backend.outlier_carry import OutlierCarry
 from vio.backend.regauge import ScaleRefiner
 from vio.backend.td_reanchor import maybe_reanchor_td
 from vio.backend.bundles import EliminatedLandmarks
@@ -121,6 +122,7 @@ class Estimator:
         self.sources: list[FactorSource] = []
         self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
         self.gauge = GaugeAnchor(cfg.gauge)   # position and yaw held in the window (vio.backend.gauge)
+        self.carry = OutlierCarry()           # SolverConfig.outlier_update "next_frame"
 
     # ------------------------------------------------------------------ setup
     def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
@@ -135,6 +137,7 @@ class Estimator:
         """After a smoother rebuild (``vio.backend.smoother``): old -> new factor slots."""
         self.lm.remap_factor_indices(remap)
         self.gauge.remap_factor_indices(remap)
+        self.carry.remap(remap)
         for src in self.sources:
             src.remap_factor_indices(remap)
 
@@ -156,6 +159,7 @@ class Estimator:
         self.smoother = self._new_smoother()
         self.smoother_factorization, self.qr_since = self.cfg.solver.factorization, None
         self.n_pad = 0
+        self.carry.clear()
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)
@@ -223,6 +227,7 @@ class Estimator:
         ``gyro``: the raw gyro reading (rad/s, body) at ``t_ns``, for predicted
         feature velocities (see ``vio.imu.KeyframeRates``);
         ``frame``: the pipeline's packet, passed to ``sources``."""
+        self.flush_outliers()
         smoother.maybe_back_to_cholesky(self)    # before any factor slot is read
         k0, k1 = self.k, self.k + 1
         div0 = self.divergences
@@ -297,14 +302,22 @@ class Estimator:
         self.values = self.smoother.calculateEstimate()
 
     def _remove_outliers(self) -> int:
-        g, stamps, removals, n = self.lm.outlier_removals(self.values)
-        if n:
-            try:
-                self._update(g, gtsam.Values(), stamps, removals)
-            except RuntimeError as exc:
-                T, v, b = self.latest()
-                self._recover(exc, self.k, self.k, gtsam.NavState(T, v), b, self.kf_t[self.k])
+        """Reject this keyframe's outlier landmarks; their update runs now or is held
+        for the next frame (``SolverConfig.outlier_update``). Returns how many."""
+        n = self.carry.hold(*self.lm.outlier_removals(self.values))
+        if self.cfg.solver.outlier_update == "now":
+            self.flush_outliers()
         return n
+
+    def flush_outliers(self) -> None:
+        """Run the outlier update the last keyframe held (``vio.backend.outlier_carry``)."""
+        held = self.carry.take(self.smoother) if self.smoother is not None else None
+        try:
+            if held is not None:
+                self._update(held[0], gtsam.Values(), held[1], held[2])
+        except RuntimeError as exc:
+            T, v, b = self.latest()
+            self._recover(exc, self.k, self.k, gtsam.NavState(T, v), b, self.kf_t[self.k])
 
     # ---------------------------------------------------------------- recovery
     def _recover(self, exc: Exception, k0: int, k1: int, pred: gtsam.NavState,
