@@ -12,7 +12,6 @@ the smoother's marginal prior.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -20,7 +19,7 @@ from typing import Any, Protocol
 import gtsam
 import numpy as np
 
-from vio.backend import graph, padding, smoother
+from vio.backend import graph, padding, recovery, smoother
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
@@ -269,7 +268,7 @@ class Estimator:
         try:
             self._update(g, v, stamps, removals)
         except RuntimeError as exc:
-            self._recover(exc, k0, k1, pred, b0, t_ns)
+            recovery.recover(self, exc, k0, k1, pred, b0, t_ns)
             recovered = True
         for k in leaving:
             self.kf_t.pop(k, None)
@@ -277,11 +276,11 @@ class Estimator:
             self.rates.drop(k)
         n_removed = 0 if recovered else self._remove_outliers()
         if not recovered and self.k == k1:
-            self._check_health(t_ns, n_removed, f_imu)
+            recovery.check_health(self, t_ns, n_removed, f_imu)
         if not recovered and self.k == k1 and self.divergences == div0:
             self.refiner.keyframe(self, k0, k1, t_ns, self.pim, bridged, features)
         if not recovered and self.k == k1:
-            self._maybe_reanchor_td()
+            maybe_reanchor_td(self)
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
@@ -317,73 +316,7 @@ class Estimator:
                 self._update(held[0], gtsam.Values(), held[1], held[2])
         except RuntimeError as exc:
             T, v, b = self.latest()
-            self._recover(exc, self.k, self.k, gtsam.NavState(T, v), b, self.kf_t[self.k])
-
-    # ---------------------------------------------------------------- recovery
-    def _recover(self, exc: Exception, k0: int, k1: int, pred: gtsam.NavState,
-                 b0: gtsam.imuBias.ConstantBias, t_ns: int) -> None:
-        """Restart the window from the last good state after a solver failure."""
-        self.recoveries += 1
-        log.error("solver failure at keyframe %d (%s): re-initializing from the last good "
-                  "state (recovery #%d)", k1, str(exc).splitlines()[0][:120], self.recoveries)
-        good = self.values
-        T_b_c = good.atPose3(graph.EXTRINSIC)
-        td = float(good.atVector(graph.TD)[0])
-        T, v, b = pred.pose(), pred.velocity(), b0
-        sane = (np.all(np.isfinite(T.matrix())) and np.all(np.isfinite(v)) and np.all(np.isfinite(b.vector()))
-                and np.linalg.norm(v) < 50.0 and np.linalg.norm(T.translation()) < 1e5)
-        if not sane:   # the prediction blew up: hold still at the last good pose
-            T, v, b = good.atPose3(X(k0)), np.zeros(3), gtsam.imuBias.ConstantBias()
-        self.lm.reset()
-        for src in self.sources:
-            src.reset()
-        state = InitialState(t_ns, T, v, b, "recovery")
-        sig = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])
-        try:
-            self._restart(k1, state, T_b_c, td, sig)
-        except RuntimeError:   # last resort: loose priors, zero velocity, calibration reset
-            log.error("recovery restart refused by the solver; restarting with loose priors")
-            state = InitialState(t_ns, T, np.zeros(3), gtsam.imuBias.ConstantBias(), "recovery")
-            self._restart(k1, state, self.cam.T_b_c, self.td0, np.full(6, 0.1))
-
-    def _check_health(self, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor) -> None:
-        """Soft restart (``vio.backend.health``) when the newest state is divergent: the
-        current position kept (no jump), attitude, velocity and bias from the last healthy
-        keyframe propagated with the IMU."""
-        T, v, b = self.latest()
-        chi2 = 2.0 * f_imu.error(self.values) if self.values.exists(X(self.k - 1)) else 0.0
-        T_b_c = self.values.atPose3(graph.EXTRINSIC)
-        td = float(self.values.atVector(graph.TD)[0])
-        reason = self.health.check(t_ns, T, v, b, self.pim, self.lm.n_active(), n_removed, chi2,
-                                   (T_b_c, td))
-        if reason is None:
-            return
-        self.divergences += 1
-        log.warning("t=%d ns (%.3f s after the start): divergence at keyframe %d (%s): soft "
-                    "restart at the current position, attitude and velocity of the last healthy "
-                    "keyframe propagated by the IMU (restart #%d)", t_ns,
-                    (t_ns - (self.t_start or t_ns)) * 1e-9, self.k, reason, self.divergences)
-        fb = self.health.fallback()
-        if fb is None:
-            nav, b0 = gtsam.NavState(T, np.zeros(3)), gtsam.imuBias.ConstantBias()
-            T_b_c, td = self.cam.T_b_c, self.td0
-        else:
-            nav, b0, (T_b_c, td) = fb
-        p = T.translation() if np.all(np.isfinite(T.translation())) else nav.position()
-        self.lm.reset()
-        for src in self.sources:
-            src.reset()
-        state = InitialState(t_ns, gtsam.Pose3(nav.attitude(), p), nav.velocity(), b0, "restart")
-        h = self.cfg.health
-        init = dataclasses.replace(self.cfg.init, prior_rp_sigma=h.restart_rp_sigma,
-                                   prior_vel_sigma=h.restart_vel_sigma,
-                                   prior_accel_bias_sigma=h.restart_accel_bias_sigma,
-                                   prior_gyro_bias_sigma=h.restart_gyro_bias_sigma)
-        self._restart(self.k, state, T_b_c, td, None, init)
-
-    def _maybe_reanchor_td(self) -> None:
-        """``vio.backend.td_reanchor.maybe_reanchor_td`` (a window restart at a fed-back td)."""
-        maybe_reanchor_td(self)
+            recovery.recover(self, exc, self.k, self.k, gtsam.NavState(T, v), b, self.kf_t[self.k])
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:

@@ -16,6 +16,7 @@ import numpy as np
 
 from vio.backend import graph
 from vio.backend.init import InitialState
+from vio.backend.recovery import fresh_window, recover
 
 log = logging.getLogger(__name__)
 X, V, B = graph.X, graph.V, graph.B
@@ -48,10 +49,7 @@ def maybe_reanchor_td(est) -> None:
     log.info("t=%d ns: td re-anchored at %.2f ms (sigma %.2f ms; the sync layer applies %.2f ms "
              "more than at the last start): window restarted", t_ns, (est.td_applied_s + td) * 1e3,
              sigma * 1e3, (held - est._td_anchor) * 1e3)
-    est.lm.reset()
-    for src in est.sources:
-        src.reset()
     try:
-        est._restart(k, InitialState(t_ns, T, v, b, "td re-anchor"), T_b_c, td, None, priors=g)
+        fresh_window(est, k, InitialState(t_ns, T, v, b, "td re-anchor"), T_b_c, td, None, priors=g)
     except RuntimeError as exc:
-        est._recover(exc, k, k, gtsam.NavState(T, v), b, t_ns)
+        recover(est, exc, k, k, gtsam.NavState(T, v), b, t_ns)
