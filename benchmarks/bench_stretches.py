@@ -72,7 +72,7 @@ def run(folder: Path, mode: str, config: Path | None = None) -> dict:
     s = evaluate(t, p, q, data.groundtruth, sim3=True)
     ms = res.frame_ms()
     init = res.init
-    return dict(ate_mm=1e3 * e.ate_rmse, sim3_mm=1e3 * s.ate_rmse, scale_pct=100 * (1 / s.scale - 1),
+    return dict(ate_mm=1e3 * e.ate_rmse, sim3_mm=1e3 * s.ate_rmse, scale_pct=s.scale_error_pct,
                 poses=len(t), frames=res.frames_in,
                 init=f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s" if init else "never",
                 p95=float(np.percentile(ms, 95)) if ms.size else float("nan"),

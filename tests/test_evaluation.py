@@ -27,6 +27,7 @@ def test_sim3_scale_is_the_estimate_shortfall(shrink):
     sim = evaluate(gt.t_ns, p_est, gt.q_wxyz, gt, sim3=True)
     se3 = evaluate(gt.t_ns, p_est, gt.q_wxyz, gt)
     assert sim.scale == pytest.approx(1.0 / shrink, rel=1e-6)
+    assert sim.scale_error_pct == pytest.approx(100.0 * (shrink - 1.0), abs=1e-4)
     assert sim.ate_rmse < 1e-6 and sim.alignment == "sim3"
     assert se3.scale == 1.0
     assert (se3.ate_rmse > 0.01) == (shrink != 1.0)

@@ -31,6 +31,11 @@ class TrajectoryErrors:
     alignment: str
     scale: float = 1.0
 
+    @property
+    def scale_error_pct(self) -> float:
+        """The estimate's length against the ground truth's, in % (negative: short)."""
+        return 100.0 * (1.0 / self.scale - 1.0)
+
 
 def _evo_traj(t_ns: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray):
     from evo.core.trajectory import PoseTrajectory3D

@@ -64,8 +64,8 @@ MODE_DEFAULTS["hybrid"]["frontend"]["contrast"] = "clahe"
 # features: triangulated tracks become world points (vio.backend.point_tracks): the anchored
 # inverse depths left generated mid-flight excerpts 0.5-2% short (bench_midflight MH_04@40
 # 0.378 -> 0.235%, MH_05@40 0.312 -> 0.165%; unseen starts MH_05@55 0.635 -> 0.188%, MH_03@80
-# 0.162 -> 0.103%); real V1_01 0.0267 -> 0.0265 m. Mono keeps the anchored inverse depths:
-# real MH_05 starts at frames 0-150 gave a mean 0.127 (anchor) / 0.135 m (points), chaotic
+# 0.162 -> 0.103%); real V1_01 0.0267 -> 0.0265 m. (Mono, measured then with CLAHE and 150
+# tracks from 7 starts, had kept the anchors: 0.127 / 0.135 m, chaotic; now below)
 MODE_DEFAULTS["features"] = {"backend": {"vision": {"reanchor": "point"}}}
 # mono: triangulated tracks become world points too, and the KLT worker keeps 200 tracks 25 px
 # apart instead of 150 at 30 px. The anchored inverse depths left real MH_05 short, and

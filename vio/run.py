@@ -281,7 +281,7 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
             if e.path_length >= MIN_SCALE_PATH_M:    # a still run's scale is noise
                 s = evaluate(*res.arrays(), data.groundtruth, sim3=True)
                 lines.append(f"ATE RMSE Sim3   {s.ate_rmse:.4f} m (the estimate's scale "
-                             f"{100 * (1 / s.scale - 1):+.1f} % against the ground truth)")
+                             f"{s.scale_error_pct:+.1f} % against the ground truth)")
     return lines
 
 
