@@ -1,6 +1,7 @@
 """One photometric factor per host keyframe, its points' inverse depths eliminated inside.
 
-Keys: ``[T_w_bh (pose3), ab_h (2), then T_w_bm (pose3), ab_m (2) per target m]``; the
+Keys: ``[T_w_bh (pose3), ab_h (2), then T_w_bm (pose3), ab_m (2) per target m]`` and,
+when the frames' exposure times are modelled (``HostTiming``), td (1) last; the
 N points of the host (``HostPoints``) carry their inverse depths rho (1/m, host cam0)
 inside the factor, not as graph variables. At each linearization the kernel
 (``factors.photometric_kernel.host_system``) refines every rho with the poses held
@@ -99,9 +100,9 @@ def _kvec(K: Pinhole) -> np.ndarray:
     return np.array([K.fx, K.fy, K.cx, K.cy])
 
 
-def host_kinds(n_targets: int) -> list:
-    """Key kinds of ``host_factor``."""
-    return ["pose3", 2] + ["pose3", 2] * n_targets
+def host_kinds(n_targets: int, timed: bool = False) -> list:
+    """Key kinds of ``host_factor`` (``timed``: td's 1-vector last)."""
+    return ["pose3", 2] + ["pose3", 2] * n_targets + ([1] if timed else [])
 
 
 def target_list(targets: Sequence[np.ndarray], stereo: StereoHost | None):
@@ -202,31 +203,83 @@ def square_root(H: np.ndarray, g: np.ndarray, E: float, rel_eps: float = 1e-9, d
                               float(E), float(rel_eps), float(damp))
 
 
+@dataclass(frozen=True, eq=False)
+class HostTiming:
+    """When the frames of a host factor were exposed (seed 004's time offset, applied to
+    the photometric term): keyframe f's image was taken ``td - td_obs[f]`` after its
+    state's time, where its body was at ``T_w_bf Exp((td - td_obs[f]) xi_f)`` (exact for a
+    constant body twist). ``twists`` (M + 1, 6): xi_f = [omega_b (rad/s), v_b (m/s)] in
+    GTSAM's tangent order, host first, then the targets in key order; ``td_obs`` (M + 1,)
+    s: the part of td each keyframe's time already holds (the sync layer's feedback).
+    Both are constants of the factor, as the KLT factors' predicted image velocities."""
+
+    twists: np.ndarray
+    td_obs: np.ndarray
+
+
+def timed_args(args: list, timing: HostTiming) -> tuple[list, np.ndarray]:
+    """``args`` = [T_w_bh, ab_h, T_w_b1, ab_1, ..., td (1,)] -> the same list with the poses
+    at their exposure times (td dropped), and the map ``A`` (8 (M + 1), 8 (M + 1) + 1) from
+    the keys' tangents [..., delta td] to those of the exposure poses:
+    T Exp(d) Exp(s xi) = T Exp(s xi) Exp(Ad(Exp(-s xi)) d), and d/ds T Exp(s xi) = xi in
+    the right tangent (J_r(s xi) xi = xi), so H' = A^T H A and g' = A^T g."""
+    td = float(np.asarray(args[-1], float)[0])
+    nf = len(timing.td_obs)
+    n = 8 * nf
+    out, A = list(args[:-1]), np.zeros((n, n + 1))
+    for f in range(nf):
+        xi = timing.twists[f]
+        E = gtsam.Pose3.Expmap((td - timing.td_obs[f]) * xi)
+        out[2 * f] = args[2 * f].compose(E)
+        o = 8 * f
+        A[o:o + 6, o:o + 6] = E.inverse().AdjointMap()
+        A[o + 6, o + 6] = A[o + 7, o + 7] = 1.0
+        A[o:o + 6, n] = xi
+    return out, A
+
+
 def host_residual_fn(pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole, T_b_c: gtsam.Pose3,
-                     params: HostParams, stereo: StereoHost | None = None):
-    """The residual function over ``host_kinds(len(targets))`` keys (module docstring)."""
+                     params: HostParams, stereo: StereoHost | None = None,
+                     timing: HostTiming | None = None):
+    """The residual function over ``host_kinds(len(targets), timing is not None)`` keys
+    (module docstring; with ``timing``, td's key last and the poses moved to the exposure
+    times, ``timed_args``)."""
     targets = list(targets)
     imgs = target_list(targets, stereo)
 
     def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
-        H, g, _, red, _ = host_linearize(args, pts, targets, K, T_b_c, params, stereo, imgs=imgs)
-        return square_root(H, g, red, damp=params.damping)
+        if timing is None:
+            H, g, _, red, _ = host_linearize(args, pts, targets, K, T_b_c, params, stereo, imgs=imgs)
+            return square_root(H, g, red, damp=params.damping)
+        exposed, A = timed_args(args, timing)
+        H, g, _, red, _ = host_linearize(exposed, pts, targets, K, T_b_c, params, stereo, imgs=imgs)
+        # Marquardt damping in the exposure poses' coordinates, as the untimed factor's. Damped
+        # in the keys' coordinates instead, td moved together with the states along their
+        # twists (which leaves the exposure poses, and so the photometric cost, unchanged)
+        # was charged at every factor, a prior at its linearization point: on a render with
+        # td 8 ms the estimate stayed at -0.5 ms from either start (marginal sigma 0.2 ms)
+        H = H + params.damping * np.diag(np.diag(H))
+        return square_root(A.T @ H @ A, A.T @ g, red)
 
     return fn
 
 
 def host_factor(keys: Sequence[int], pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole,
                 T_b_c: gtsam.Pose3, params: HostParams, stereo: StereoHost | None = None,
-                health: FactorHealth | None = None) -> gtsam.CustomFactor:
+                health: FactorHealth | None = None, timing: HostTiming | None = None) -> gtsam.CustomFactor:
     """The per-host factor; ``targets`` the (H, W, 3) image stacks of the target keyframes
-    in key order, at most ``pts.tmask.shape[1]`` of them."""
+    in key order, at most ``pts.tmask.shape[1]`` of them; with ``timing`` the last key is
+    td's (``HostTiming``)."""
     M = len(targets)
+    timed = timing is not None
     if M < 1 or M > pts.tmask.shape[1]:
         raise ValueError(f"host_factor: {M} targets, need 1..{pts.tmask.shape[1]}")
-    if len(keys) != 2 * (M + 1):
+    if len(keys) != 2 * (M + 1) + timed:
         raise ValueError(f"host_factor: {len(keys)} keys for {M} targets")
-    n = 8 * (M + 1)
-    return custom_factor(gtsam.noiseModel.Unit.Create(n + 1), keys, host_kinds(M),
-                         host_residual_fn(pts, targets, K, T_b_c, params, stereo), health,
+    if timed and (np.shape(timing.twists) != (M + 1, 6) or np.shape(timing.td_obs) != (M + 1,)):
+        raise ValueError(f"host_factor: timing for {np.shape(timing.twists)} frames, need {M + 1}")
+    n = 8 * (M + 1) + timed
+    return custom_factor(gtsam.noiseModel.Unit.Create(n + 1), keys, host_kinds(M, timed),
+                         host_residual_fn(pts, targets, K, T_b_c, params, stereo, timing), health,
                          cache=True, state=lambda: (pts.rho.tobytes(), pts.alive.tobytes(),
                                                     pts.tmask.tobytes()))

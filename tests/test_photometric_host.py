@@ -142,3 +142,83 @@ def test_host_factor_in_a_graph_and_outliers():
     # (points sitting out this linearization as stereo misfits keep their flags)
     assert pts2.tmask[:, 0].sum() <= len(rho) - used and pts2.tmask[:, 1].all() and used > 0
     assert np.abs(H2[8:16, :]).max() == 0.0 and np.abs(H2[16:24, 16:24]).max() > 0.0
+
+
+def _timing(rng, nf: int):
+    from factors.photometric_host import HostTiming
+    twists = np.c_[rng.normal(0, 0.8, (nf, 3)), rng.normal(0, 1.0, (nf, 3))]
+    return HostTiming(twists, rng.uniform(-0.01, 0.01, nf))
+
+
+def test_timed_args_map_is_the_derivative_of_the_exposure_poses():
+    """``timed_args``: the exposure pose T Exp(d) Exp((td - td_obs) xi) moves, in its right
+    tangent, by A's block for each pose tangent d and by A's td column (central differences
+    of Pose3 local coordinates; pure Lie-group math, no images)."""
+    from factors.photometric_host import timed_args
+    rng = np.random.default_rng(11)
+    nf, td, h = 3, 0.023, 1e-6
+    timing = _timing(rng, nf)
+    args = []
+    for _ in range(nf):
+        args += [random_pose(rng, np.pi, 2.0), rng.normal(size=2)]
+    args.append(np.array([td]))
+    exposed, A = timed_args(args, timing)
+    assert A.shape == (8 * nf, 8 * nf + 1)
+    for f in range(nf):
+        E0 = exposed[2 * f]
+        np.testing.assert_allclose(exposed[2 * f + 1], args[2 * f + 1])
+        for j in range(7):               # the 6 pose tangents, then td
+            moved = []
+            for s in (h, -h):
+                a = list(args)
+                if j < 6:
+                    d = np.zeros(6)
+                    d[j] = s
+                    a[2 * f] = args[2 * f].compose(gtsam.Pose3.Expmap(d))
+                else:
+                    a[-1] = np.array([td + s])
+                moved.append(E0.localCoordinates(timed_args(a, timing)[0][2 * f]))
+            num = (moved[0] - moved[1]) / (2 * h)
+            col = 8 * f + j if j < 6 else 8 * nf
+            np.testing.assert_allclose(A[8 * f:8 * f + 6, col], num, atol=2e-7)
+        assert np.all(A[8 * f + 6:8 * f + 8, 8 * f + 6:8 * f + 8] == np.eye(2))
+
+
+def test_timed_host_factor_is_the_reduced_problem_at_the_exposure_poses():
+    """With ``timing`` the factor carries td's key last; its information and gradient are
+    the untimed problem's at the exposure poses, mapped by ``timed_args`` (A^T H A, A^T g),
+    and a zero twist with td = td_obs leaves the untimed factor's answer unchanged."""
+    from factors.photometric_host import HostTiming, timed_args
+    imgs, T_b_c, args, patch, rho, stereo = _scene(5, n=15, m=2)
+    pp = PhotometricParams(4.0, 50.0, None)
+    params = HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0)
+    stacks = [im._stack for im in imgs[1:-1]]
+    rng = np.random.default_rng(5)
+    timing = _timing(rng, 3)
+    TD = gtsam.symbol_shorthand.D(0)
+    keys = [X(0), A(0), X(1), A(1), X(2), A(2), TD]
+    vals = gtsam.Values()
+    for i, key in enumerate(keys[:-1]):
+        (vals.insert(key, args[i]) if i % 2 == 0 else vals.insert(key, np.asarray(args[i], float)))
+    vals.insert(TD, np.array([0.015]))
+    f = host_factor(keys, HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c, params, stereo,
+                    timing=timing)
+    Jf, b = f.linearize(vals).jacobian()
+    assert Jf.shape == (8 * 3 + 2, 8 * 3 + 1)
+    exposed, Amap = timed_args(args + [np.array([0.015])], timing)
+    Hk, gk, _, _, _ = host_linearize(exposed, HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c,
+                                     params, stereo)
+    Hs, gs = Amap.T @ Hk @ Amap, Amap.T @ gk
+    np.testing.assert_allclose(Jf.T @ Jf, Hs, atol=1e-7 * np.abs(Hs).max())
+    np.testing.assert_allclose(-Jf.T @ b, gs, atol=1e-7 * np.abs(gs).max())
+    assert np.abs(Hs[-1, :]).max() > 0          # td is observed through the twists
+    still = HostTiming(np.zeros((3, 6)), np.full(3, 0.015))
+    f0 = host_factor(keys, HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c, params, stereo,
+                     timing=still)
+    plain = host_factor(keys[:-1], HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c, params, stereo)
+    J0, b0 = f0.linearize(vals).jacobian()
+    Jp, bp = plain.linearize(vals).jacobian()
+    np.testing.assert_allclose((J0.T @ J0)[:-1, :-1], Jp.T @ Jp, atol=1e-9 * np.abs(Jp.T @ Jp).max())
+    H0 = J0.T @ J0                              # td's column: only the gauge's eps
+    np.testing.assert_allclose(H0[-1, :-1], 0.0, atol=1e-9 * np.abs(H0).max())
+    assert H0[-1, -1] <= 2e-9 * np.abs(H0).max() and abs((J0.T @ b0)[-1]) <= 1e-9 * np.abs(J0.T @ b0).max()

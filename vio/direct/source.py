@@ -22,6 +22,10 @@ Per keyframe k (``prepare_update``):
 4. A(k) gets a weak prior, and keyframe k becomes a host with its ``max_points``
    best-spread candidates (epipolar depths; its factor appears with its first target).
 
+With ``PointsConfig.exposure_td`` (and td estimated) each host factor also carries td's
+key and sees its frames at their exposure times, moved along the body twists kept at
+their insertion (``factors.photometric_host.HostTiming``).
+
 Outliers (a (point, target) pair off the image or above ``outlier_rms``, a point whose
 stereo match fails or whose depth leaves the range) are switched off inside the
 factor at linearization (``factors.photometric_kernel``). Keyframe 0 (and the restart
@@ -40,7 +44,9 @@ import numpy as np
 
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch, temporal_eval
-from factors.photometric_host import HostParams, HostPoints, StereoHost, host_factor, host_residual_fn
+from factors.photometric_host import (HostParams, HostPoints, HostTiming, StereoHost, host_factor,
+                                      host_residual_fn)
+from vio.backend.graph import TD, B, V, X
 from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
@@ -48,7 +54,6 @@ from vio.direct.trackframe import MotionPrior, track_frame
 from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
-X = gtsam.symbol_shorthand.X
 A = gtsam.symbol_shorthand.A
 
 
@@ -109,6 +114,7 @@ class PhotometricSource:
                                  pc.stereo_weight, pc.outlier_rms, pc.refine_iters,
                                  1.0 / pc.max_depth_m, 1.0 / pc.min_depth_m, pc.damping)
         self.kfs: dict[int, KeyframeData] = {}
+        self.twists: dict[int, np.ndarray] = {}   # body twist [omega_b, v_b] at insertion
         self.hosts: dict[int, Host] = {}
         self.tracks: list[TrackRecord] = []
         self.health = FactorHealth()
@@ -166,7 +172,9 @@ class PhotometricSource:
             fd = self.kfs[f]
             if f < k and not fd.in_graph and vals.exists(X(f)):
                 self._insert_keyframe(fd, np.zeros(2), g, v, stamps)
+                self.twists[f] = self._twist(f, vals.atPose3(X(f)), vals.atVector(V(f)), vals.atConstantBias(B(f)))
         ab_k = self._track(k, kd, pred, v)
+        self.twists[k] = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
         self._host_pending()
         T_k = v.atPose3(X(k))
         for h in sorted(self.hosts):
@@ -202,6 +210,7 @@ class PhotometricSource:
         """After a solver restart: forget hosts and keys; the restart keyframe's images
         are kept and its keys inserted at the next keyframe."""
         self.hosts = {}
+        self.twists = {}
         self._pending = []
         self._unhosted = []
         kd = self.kfs.get(self.est.k)
@@ -214,6 +223,20 @@ class PhotometricSource:
         for f in leave:
             self.hosts.pop(f, None)
             self.kfs.pop(f, None)
+            self.twists.pop(f, None)
+
+    def _timed(self) -> bool:
+        return self.cfg.points.exposure_td and self.est.cfg.calib.estimate_td
+
+    def _twist(self, f: int, T_w_b: gtsam.Pose3, v_w: np.ndarray, bias) -> np.ndarray:
+        """Keyframe f's body twist [omega_b (bias-corrected mean gyro over its exposure
+        offset, ``vio.imu.KeyframeRates``), v_b] (6,); zero at keyframes flagged still
+        (their images carry no timing information, as ``vio.backend.motion``)."""
+        est = self.est
+        if f in est.still_kf:
+            return np.zeros(6)
+        w = est.rates.rate(f, est.td()) - bias.gyroscope() if f in est.rates else np.zeros(3)
+        return np.r_[w, T_w_b.rotation().unrotate(np.asarray(v_w, float))]
 
     def _latest_in_graph(self, k: int) -> KeyframeData | None:
         vals = self.est.values
@@ -293,9 +316,15 @@ class PhotometricSource:
         for j in host.targets:
             keys += [X(j), A(j)]
         stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
+        timing = None
+        if self._timed():
+            frames = [host.k, *host.targets]
+            keys.append(TD)
+            timing = HostTiming(np.array([self.twists.get(f, np.zeros(6)) for f in frames]),
+                                np.array([self.est.rates.td_obs(f) for f in frames]))
         self._pending.append((host, int(g.size())))
         g.add(host_factor(keys, host.pts, [self.kfs[j].left._stack for j in host.targets],
-                          self.rig.K0, self.rig.T_b_c, self.params, stereo, self.health))
+                          self.rig.K0, self.rig.T_b_c, self.params, stereo, self.health, timing))
         self.n_factors_built += 1
 
     def _insert_keyframe(self, kd: KeyframeData, ab: np.ndarray, g, v, stamps) -> None:
