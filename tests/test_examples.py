@@ -16,6 +16,12 @@ def test_example_config_loads_strictly():
     assert cfg.backend.solver.lag_s == 2.5 and cfg.frontend.max_features == 150
 
 
+def test_photometric_td_example_loads_strictly():
+    cfg = load_config(EXAMPLES / "photometric_td.yaml", mode="hybrid")
+    assert cfg.direct.points.exposure_td and cfg.backend.solver.relinearize_skip == 1
+    assert cfg.backend.calib.estimate_td and cfg.backend.calib.td_feedback_after_s == 3.0
+
+
 def test_custom_factor_example_runs(capsys):
     runpy.run_path(str(EXAMPLES / "custom_factor.py"), run_name="__main__")
     assert "whitened block" in capsys.readouterr().out

@@ -148,8 +148,12 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
         return packets(data.imu, stamps, cfg.td_s, data.features[:len(stamps)], **screen,
                        td_source=td_feedback(pipe, cfg)), None
     stereo = mode in STEREO_MODES
+    # the photometric factors with exposure times (direct.points.exposure_td) get the td
+    # feedback, which brings the keyframe times to the exposure times; the KLT modes do not
+    # (tried: renders moved both ways, benchmarks/README.md, td in the photometric modes)
+    timed = mode in ("direct", "hybrid") and cfg.direct.points.exposure_td
     it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
-                 **screen)
+                 **screen, td_source=td_feedback(pipe, cfg) if timed else None)
     from vio.tracking import ImageStage
     args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
     worker = cfg.frontend.worker_process and overlap.SUPPORTED
@@ -347,4 +351,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         smooth_file(args.out, args.smooth)
     for line in summary(res, data):
         print(line)
+    if mode in ("direct", "hybrid") and not cfg.direct.points.exposure_td:
+        print("td note         the photometric term holds td at the sync layer's value (--td); to "
+              "estimate it: --config examples/photometric_td.yaml")
     return 0

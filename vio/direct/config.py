@@ -169,17 +169,16 @@ class PointsConfig:
     ``track_gate_m`` / ``track_gate_rad`` of the prediction. The backend settings these
     modes need (iSAM2 relinearization, direct mode's keyframe parallax) are mode
     defaults in ``vio.modes.MODE_DEFAULTS``, so a YAML file overrides them.
-    ``exposure_td`` (off by default; a td calibration option): while the backend estimates
-    td (``backend.calib.estimate_td``), each host factor carries td's key and sees every
+    ``exposure_td`` (off by default): while the backend estimates td
+    (``backend.calib.estimate_td``), each host factor carries td's key and sees every
     frame at its exposure time, the keyframe pose moved along its body twist by ``td``
-    minus the part its time already holds (``factors.photometric_host.HostTiming``).
-    Without it the photometric term takes each image as taken at its keyframe's time and
-    holds td at the sync layer's value (hybrid on renders with td 8 / 10 ms: -0.2 / 0.2
-    ms). It needs iSAM2 to relinearize at every update (``backend.solver.relinearize_skip:
-    1``; at the photometric modes' 10 the stale host factors cost 3-5x in ATE): then td
-    comes out at 8.7 / 11.0 ms in direct, 8.2 / 12.0 ms in hybrid, but the ATE does not
-    gain while td converges from 0 (benchmarks/README.md, photometric td), so the default
-    stays off: calibrate td with it, then run with ``--td``.
+    minus the part its time already holds (``factors.photometric_host.HostTiming``), and
+    the sync layer's td feedback (``CalibConfig``) runs in these modes. Without it the
+    photometric term takes each image as taken at its keyframe's time and holds td at the
+    sync layer's value. It needs iSAM2 to relinearize at every update
+    (``backend.solver.relinearize_skip: 1``, ~40 % more CPU in hybrid):
+    ``examples/photometric_td.yaml`` has the setting and benchmarks/README.md (td in the
+    photometric modes) the figures.
     """
 
     max_points: int = 150
