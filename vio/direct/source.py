@@ -172,9 +172,12 @@ class PhotometricSource:
             fd = self.kfs[f]
             if f < k and not fd.in_graph and vals.exists(X(f)):
                 self._insert_keyframe(fd, np.zeros(2), g, v, stamps)
-                self.twists[f] = self._twist(f, vals.atPose3(X(f)), vals.atVector(V(f)), vals.atConstantBias(B(f)))
+                if self._timed():
+                    self.twists[f] = self._twist(f, vals.atPose3(X(f)), vals.atVector(V(f)),
+                                                 vals.atConstantBias(B(f)))
         ab_k = self._track(k, kd, pred, v)
-        self.twists[k] = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
+        if self._timed():
+            self.twists[k] = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
         self._host_pending()
         T_k = v.atPose3(X(k))
         for h in sorted(self.hosts):
