@@ -212,7 +212,8 @@ def test_exposure_td_lets_direct_mode_find_the_time_offset(tmp_path):
     """With ``exposure_td`` (and td estimated, relinearization at every update) the host
     factors carry td's key and place each frame at its exposure time: on 4 s of rendered
     stereo with td 8 ms, synced at 0, direct mode's td comes out near 8 ms instead of the
-    sync layer's 0 (measured here 5.2 ms, 0.0 without the option; 8.7 ms on a 20-s render)."""
+    sync layer's 0 (measured here 5.2 ms, 0.0 without the option; 7.9 ms on a 20-s render),
+    and the sync layer's td feedback moves the frame times (here 4 ms by the last frame)."""
     from vio.sim import simulate
     from vio.sim.config import SimConfig
     simulate(tmp_path, SimConfig(seconds=4.0, seed=3, image_scale=0.5, td_s=0.008))
@@ -221,9 +222,13 @@ def test_exposure_td_lets_direct_mode_find_the_time_offset(tmp_path):
     be = cfg.backend
     cfg = dataclasses.replace(
         cfg, direct=dataclasses.replace(cfg.direct, points=dataclasses.replace(cfg.direct.points, exposure_td=True)),
-        backend=dataclasses.replace(be, calib=dataclasses.replace(be.calib, estimate_td=True),
+        backend=dataclasses.replace(be, calib=dataclasses.replace(be.calib, estimate_td=True,
+                                                                  td_feedback_after_s=1.0),
                                     solver=dataclasses.replace(be.solver, relinearize_skip=1)))
     res = run_dataset(data, cfg, mode="direct")
     assert res.recoveries == 0
     td = res.outputs[-1].td_s
     assert 0.004 < td < 0.012, f"td {td * 1e3:.2f} ms"
+    # the sync layer's feedback runs in this mode too: the last frame's time holds part of td
+    applied = (res.outputs[-1].t_ns - int(data.cam0.t_ns[-1])) * 1e-9
+    assert 0.001 <= applied <= td + 1e-9, f"applied {applied * 1e3:.2f} ms"
