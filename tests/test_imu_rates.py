@@ -80,3 +80,25 @@ def test_keyframe_rate_offset_by_td_obs():
     np.testing.assert_allclose(r.rate(2, 0.010), mean_gyro(full, 300 * MS, 307 * MS), atol=1e-12)
     np.testing.assert_allclose(r.rate(2, -0.002), mean_gyro(full, 295 * MS, 300 * MS), atol=1e-12)
     np.testing.assert_allclose(r.rate(2, 0.003), full.gyro[60], atol=1e-12)
+
+
+def test_body_motion_is_the_rate_over_the_offset_and_the_body_velocity():
+    """``vio.backend.motion.body_motion`` (the KLT factors' predicted velocities and the
+    photometric factors' exposure twists): the bias-corrected mean gyro over [t_k, t_k +
+    td - td_obs] at the TD variable's value, the velocity in the body frame, zeros at a
+    keyframe flagged still."""
+    import gtsam
+    from types import SimpleNamespace
+    from vio.backend.motion import body_motion
+    rates = KeyframeRates(margin_s=0.1)
+    imu = _imu(0, 200)
+    rates.add_keyframe(3, 50 * MS, imu.gyro[10], td_obs_s=0.002)
+    rates.add_imu(imu)
+    est = SimpleNamespace(rates=rates, still_kf={4})
+    T = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.3, -0.2, 1.1), np.array([1.0, 2.0, 3.0]))
+    v_w, bias = np.array([0.5, -1.0, 0.2]), gtsam.imuBias.ConstantBias(np.zeros(3), np.array([0.01, -0.02, 0.03]))
+    w, v = body_motion(est, 3, T, v_w, bias, 0.009)
+    np.testing.assert_allclose(w, mean_gyro(imu, 50 * MS, 57 * MS) - [0.01, -0.02, 0.03], atol=1e-12)
+    np.testing.assert_allclose(v, T.rotation().matrix().T @ v_w, atol=1e-12)
+    w, v = body_motion(est, 4, T, v_w, bias, 0.009)
+    assert not w.any() and not v.any()

@@ -243,7 +243,7 @@ class RerunSink:
                          rr.Points3D(up.chunk[1], colors=MAP_COLOR, radii=-self.cfg.map_pt))
 
     def add_direct_source(self, getter) -> None:
-        """Show photometric points: ``getter()`` returns a ``vio.direct.source.PointSnapshot``
+        """Show photometric points: ``getter()`` returns a ``vio.direct.records.PointSnapshot``
         (``uv`` normalized cam0 coordinates, ``inv_depth``) or None; called on keyframes."""
         self._direct = getter
 

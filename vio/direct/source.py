@@ -47,9 +47,11 @@ from factors.photometric import PhotometricParams, make_host_patch, temporal_eva
 from factors.photometric_host import (HostParams, HostPoints, HostTiming, StereoHost, host_factor,
                                       host_residual_fn)
 from vio.backend.graph import TD, B, V, X
+from vio.backend.motion import body_motion
 from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
+from vio.direct.records import PointSnapshot, TrackRecord
 from vio.direct.trackframe import MotionPrior, track_frame
 from vio.io.euroc import read_image
 
@@ -69,37 +71,6 @@ class Host:
     targets: list
     factor_index: int | None = None
     open: bool = True
-
-
-@dataclass(frozen=True)
-class TrackRecord:
-    """TrackFrame at keyframe ``k``: level-0 ``rmse`` (intensity units), ``ok``, whether
-    its pose was ``used`` as the initial guess, its distance to the IMU prediction
-    (m, rad) and the wall time (ms)."""
-
-    k: int
-    t_ns: int
-    rmse: float
-    ok: bool
-    used: bool
-    dist_m: float
-    angle_rad: float
-    ms: float
-
-
-@dataclass(frozen=True)
-class PointSnapshot:
-    """Points seen in the newest keyframe: ``uv`` (N, 2) normalized cam0 coordinates,
-    ``rmse`` (N,) residual RMSE (intensity units) at the current estimate (stereo term
-    for points hosted there, else the temporal term), ``hosted`` (N,) bool,
-    ``inv_depth`` (N,) inverse depth (1/m) in that keyframe's cam0 at the estimate."""
-
-    k: int
-    t_ns: int
-    uv: np.ndarray
-    rmse: np.ndarray
-    hosted: np.ndarray
-    inv_depth: np.ndarray | None = None
 
 
 class PhotometricSource:
@@ -232,14 +203,9 @@ class PhotometricSource:
         return self.cfg.points.exposure_td and self.est.cfg.calib.estimate_td
 
     def _twist(self, f: int, T_w_b: gtsam.Pose3, v_w: np.ndarray, bias) -> np.ndarray:
-        """Keyframe f's body twist [omega_b (bias-corrected mean gyro over its exposure
-        offset, ``vio.imu.KeyframeRates``), v_b] (6,); zero at keyframes flagged still
-        (their images carry no timing information, as ``vio.backend.motion``)."""
-        est = self.est
-        if f in est.still_kf:
-            return np.zeros(6)
-        w = est.rates.rate(f, est.td()) - bias.gyroscope() if f in est.rates else np.zeros(3)
-        return np.r_[w, T_w_b.rotation().unrotate(np.asarray(v_w, float))]
+        """Keyframe f's body twist [omega_b, v_b] (6,), ``vio.backend.motion.body_motion``."""
+        td = float(self.est.values.atVector(TD)[0])
+        return np.concatenate(body_motion(self.est, f, T_w_b, np.asarray(v_w, float), bias, td))
 
     def _latest_in_graph(self, k: int) -> KeyframeData | None:
         vals = self.est.values
