@@ -87,8 +87,9 @@ MODE_DEFAULTS["mono"]["frontend"] = {"max_features": 200, "min_dist_px": 25}
 # MH_01 stretches 5.608 -> 5.606 mm, p95 83 / 83 ms either way (its bundles' outlier
 # updates are cheap; its worker bounds it), so it keeps "now"
 MODE_DEFAULTS["mono"]["backend"]["solver"] = {"outlier_update": "next_frame"}
-# direct: no factor of the photometric points involves td (it is unobservable there), so
-# it is held at the sync layer's value (``--td``) instead of being reported as estimated;
+# direct: by default no factor of the photometric points involves td (unobservable there),
+# so it is held at the sync layer's value (``--td``) instead of being reported as estimated
+# (``direct.points.exposure_td`` with ``examples/photometric_td.yaml`` estimates it);
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
 MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}, "solver": dict(_PHOTOMETRIC_SOLVER),
                                        "keyframe": {"min_parallax_px": 40.0}}}

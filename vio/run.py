@@ -82,6 +82,7 @@ def load_config(path: Path | None, td: float | None = None, mode: str = "feature
 
 MODES = ("features", "mono", "stereo", "direct", "hybrid")
 STEREO_MODES = ("stereo", "direct", "hybrid")
+PHOTOMETRIC_MODES = ("direct", "hybrid")
 # the summary's Sim3 line needs this much ground-truth path (m) for a meaningful scale
 MIN_SCALE_PATH_M = 1.0
 
@@ -151,13 +152,13 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
     # the photometric factors with exposure times (direct.points.exposure_td) get the td
     # feedback, which brings the keyframe times to the exposure times; the KLT modes do not
     # (tried: renders moved both ways, benchmarks/README.md, td in the photometric modes)
-    timed = mode in ("direct", "hybrid") and cfg.direct.points.exposure_td
+    timed = mode in PHOTOMETRIC_MODES and cfg.direct.points.exposure_td
     it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
                  **screen, td_source=td_feedback(pipe, cfg) if timed else None)
     from vio.tracking import ImageStage
     args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
     worker = cfg.frontend.worker_process and overlap.SUPPORTED
-    if mode in ("direct", "hybrid"):
+    if mode in PHOTOMETRIC_MODES:
         from vio.direct.mode import attach
         # hybrid tracks KLT on every frame: in the worker process, like stereo mode (direct
         # needs KLT only until it is initialized, so it stays in this process)
@@ -181,7 +182,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     cfg = default_config(mode) if cfg is None else cfg
     cam1 = data.cam1.calib if mode in STEREO_MODES else None
     if cfg.live:
-        if mode in ("direct", "hybrid"):
+        if mode in PHOTOMETRIC_MODES:
             raise ValueError(f"live operation (PipelineConfig.live) is not available in mode {mode}")
         from vio.live import LivePipeline
         pipe = LivePipeline(data.imu_calib, data.cam0.calib, cfg, cam1)
@@ -296,7 +297,7 @@ def _note_cold_kernels(mode: str) -> None:
     from factors.jit import cache_is_warm
     from factors.track_kernel import track_eval
     kernels = [track_eval]
-    if mode in ("direct", "hybrid"):
+    if mode in PHOTOMETRIC_MODES:
         from factors.photometric_kernel import host_system
         kernels.append(host_system)
     if not all(cache_is_warm(k) for k in kernels):
@@ -351,7 +352,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         smooth_file(args.out, args.smooth)
     for line in summary(res, data):
         print(line)
-    if mode in ("direct", "hybrid") and not cfg.direct.points.exposure_td:
+    if mode in PHOTOMETRIC_MODES and not cfg.direct.points.exposure_td:
         print("td note         the photometric term holds td at the sync layer's value (--td); to "
               "estimate it: --config examples/photometric_td.yaml")
     return 0
