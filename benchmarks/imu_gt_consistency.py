@@ -41,27 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vio.io.euroc import find_mav0, read_imu_csv  # noqa: E402
 from vio.io.load import load_groundtruth  # noqa: E402
+from vio.trajectory import interpolate_poses  # noqa: E402
 
 GRAVITY_W = np.array([0.0, 0.0, -9.81])
-
-
-def _quat_to_rot(q_wxyz: np.ndarray) -> np.ndarray:
-    """(N, 4) unit quaternions [w, x, y, z] -> (N, 3, 3) rotation matrices."""
-    w, x, y, z = (q_wxyz / np.linalg.norm(q_wxyz, axis=1, keepdims=True)).T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)
-
-
-def _interp_quat(t: np.ndarray, t_ref: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
-    """Quaternions at ``t`` by normalized linear interpolation between ``t_ref`` rows
-    (the ground truth's 20-200 Hz rows turn by < 1 deg between rows)."""
-    q = q_ref.copy()
-    q[1:] *= np.sign(np.sum(q[1:] * q[:-1], axis=1))[:, None].cumprod(0)  # one hemisphere
-    out = np.stack([np.interp(t, t_ref, q[:, k]) for k in range(4)], 1)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
 def imu_world_accel(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]:
@@ -72,11 +54,9 @@ def imu_world_accel(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     imu = read_imu_csv(mav0 / "imu0" / "data.csv")
     gt = load_groundtruth(path)
     t_gt = gt.t_ns * 1e-9
-    t = imu.t_ns * 1e-9
-    keep = (t >= t_gt[0]) & (t <= t_gt[-1])
-    t, a_m = t[keep], imu.accel[keep]
-    R = _quat_to_rot(_interp_quat(t, t_gt, gt.q_wxyz))
-    p = np.stack([np.interp(t, t_gt, gt.p_w[:, k]) for k in range(3)], 1)
+    keep = (imu.t_ns >= gt.t_ns[0]) & (imu.t_ns <= gt.t_ns[-1])
+    t, a_m = imu.t_ns[keep] * 1e-9, imu.accel[keep]
+    p, R = interpolate_poses(gt.t_ns, gt.p_w, gt.q_wxyz, imu.t_ns[keep])
     has_bias = gt.ba is not None and bool(np.all(np.isfinite(gt.ba)))
     b = (np.stack([np.interp(t, t_gt, gt.ba[:, k]) for k in range(3)], 1) if has_bias
          else np.zeros_like(a_m))
