@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import gtsam
 import numpy as np
 
-from vio.backend import graph, padding, recovery, smoother
+from vio.backend import bridge, graph, padding, recovery, smoother
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
@@ -94,9 +94,10 @@ class Estimator:
                                            cfg.bridge.gyro_density)
         self._bridge_t: int | None = None   # bridging an IMU gap: synthetic readings up to here
         w = cfg.imu.scale_walk
+        self.bias_walk = np.r_[np.full(3, w * imu_calib.accel_random_walk), np.full(3, w * imu_calib.gyro_random_walk)]
         self.health = HealthMonitor(
             cfg.health, np.r_[np.full(3, cfg.init.prior_accel_bias_sigma), np.full(3, cfg.init.prior_gyro_bias_sigma)],
-            np.r_[np.full(3, w * imu_calib.accel_random_walk), np.full(3, w * imu_calib.gyro_random_walk)])
+            self.bias_walk)
         self.bridged = 0          # keyframe intervals bridged across IMU gaps
         self.divergences = 0      # soft restarts after a divergence
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
@@ -110,6 +111,7 @@ class Estimator:
         self.k = -1
         self.kf_t: dict[int, int] = {}
         self.still_kf: set[int] = set()   # keyframes the pipeline flagged still (no td term)
+        self.bridged_kf: set[int] = set()  # window keyframes reached by an IMU-gap bridge
         self.rates = KeyframeRates()
         self.recoveries = 0
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
@@ -166,6 +168,7 @@ class Estimator:
         self.k = k
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
+        self.bridged_kf = set()
         self.rates.reset_to(k)
         self.gauge.reset(k)
         self._td_anchor = self.rates.td_obs(k)
@@ -234,17 +237,27 @@ class Estimator:
         _, _, b0 = self.latest()
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        f_imu = graph.imu_factor(k0, k1, self.pim)
-        g.add(f_imu)
         bridged = self._bridge_t is not None
-        if bridged:
+        if bridged:   # the still readings served the prediction only (vio.imu.integrate_still)
+            bc = self.cfg.bridge
+            fs = bridge.bridge_factors(k0, k1, (t_ns - self.kf_t[k0]) * 1e-9, bc.accel_density,
+                                      bc.gyro_density, self.bias_walk)
             self.bridged += 1
             log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
                      t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
             self._bridge_t = None
+        else:
+            fs = [graph.imu_factor(k0, k1, self.pim)]
+        f_imu = fs[0]
+        for f in fs:
+            g.add(f)
         if still:
             g.add(graph.zero_velocity(k1, self.cfg.init.zupt_sigma))
             self.still_kf.add(k1)
+        if bridged:
+            self.bridged_kf.add(k1)
+        if self.bridged_kf and self.cfg.bridge.pnp_gate:   # bridged states in the window: vision holds them
+            pred, features = bridge.gate_bridged(self, features, pred, keep_pose=not bridged)
         v.insert(X(k1), pred.pose())
         v.insert(V(k1), pred.velocity())
         v.insert(B(k1), b0)
@@ -273,6 +286,7 @@ class Estimator:
         for k in leaving:
             self.kf_t.pop(k, None)
             self.still_kf.discard(k)
+            self.bridged_kf.discard(k)
             self.rates.drop(k)
         n_removed = 0 if recovered else self._remove_outliers()
         if not recovered and self.k == k1:

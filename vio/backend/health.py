@@ -66,17 +66,24 @@ class HealthConfig:
 
 @dataclass(frozen=True)
 class BridgeConfig:
-    """The motion prior standing in for the IMU factor across an IMU gap: constant
-    velocity and attitude, driven by white acceleration of ``accel_density``
-    (m/s^2/sqrt(Hz)) and white rotation rate of ``gyro_density`` (rad/s/sqrt(Hz)), so its
-    sigmas grow with the gap (position ~ accel_density * T^1.5 / sqrt(3), plus the gravity
-    direction the free attitude leaves uncertain, which dominates long gaps: position
-    sigma 0.28 m over 0.5 s, 17 m over 3 s: a weak prior that vision overrides);
-    integrated in steps of ``step_s``. The biases keep their random walk across it."""
+    """What stands in for the IMU factor across an IMU gap (``vio.backend.bridge``): a
+    constant-velocity motion prior driven by white acceleration of ``accel_density``
+    (m/s^2/sqrt(Hz)) and an attitude random walk of ``gyro_density`` (rad/s/sqrt(Hz)),
+    independent of each other (``factors.motion_prior``: position sigma
+    accel_density * T^1.5 / sqrt(3), 0.2 m over 0.5 s: a weak prior that vision
+    overrides), and the biases' random walk. The state is predicted across the gap by
+    integrating still readings in steps of ``step_s`` (``vio.imu.integrate_still``:
+    constant velocity and attitude). ``pnp_gate``: while bridged keyframes are in the
+    window, each keyframe is located by RANSAC PnP on the window's points first, with at
+    least ``pnp_min_inliers`` inliers, and the observations it rejects are left out.
+    (Until stop 38 the preintegrated still readings were the factor too; their gravity
+    term tied position to attitude: position sigma 0.28 m over 0.5 s, 17 m over 3 s.)"""
 
     accel_density: float = 1.0
     gyro_density: float = 0.5
     step_s: float = 0.005
+    pnp_gate: bool = True
+    pnp_min_inliers: int = 6
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,69 @@
+"""The IMU-gap bridge's pieces: the bridged keyframe located by RANSAC PnP on the window's
+points (``vio.backend.bridge``) and the motion prior's noise (``factors.motion_prior``);
+the end-to-end gap runs are in ``tests/test_faults.py``."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from factors.motion_prior import motion_prior_covariance, motion_prior_factor
+from vio.backend.bridge import locate
+from vio.io.types import FeatureFrame
+
+X, V = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V
+
+
+def _frame(T_w_c: gtsam.Pose3, p_w: np.ndarray, noise: float, rng) -> FeatureFrame:
+    q = np.array([T_w_c.transformTo(p) for p in p_w])
+    uv = q[:, :2] / q[:, 2:3] + rng.normal(0, noise, (len(p_w), 2))
+    n = len(p_w)
+    return FeatureFrame(0, np.arange(n, dtype=np.int64), uv, np.zeros((n, 2)), np.full(n, np.nan))
+
+
+def test_pnp_locates_the_bridged_keyframe_and_leaves_out_jumped_tracks():
+    rng = np.random.default_rng(3)
+    T_b_c = gtsam.Pose3(gtsam.Rot3.Ypr(-1.57, 0.0, -1.57), np.array([0.05, -0.02, 0.01]))
+    T_w_b = gtsam.Pose3(gtsam.Rot3.Ypr(0.4, 0.1, -0.05), np.array([1.0, 2.0, 1.5]))
+    T_w_c = T_w_b.compose(T_b_c)
+    p_w = np.array([T_w_c.transformFrom(np.r_[rng.uniform(-1, 1, 2), 1.0] * rng.uniform(2, 6)) for _ in range(13)])
+    fr = _frame(T_w_c, p_w, 0.5 / 460, rng)
+    uv = fr.uv.copy()
+    uv[[2, 7, 11]] += np.array([0.06, -0.04])            # three tracks jump by ~30 px
+    fr = FeatureFrame(0, fr.ids, uv, fr.velocity, fr.row)
+    pred = T_w_b.compose(gtsam.Pose3(gtsam.Rot3.Rz(0.05), np.array([0.1, -0.08, 0.05])))   # prior 14 cm off
+    T, kept = locate(np.arange(13), p_w, fr, pred, T_b_c, 6.0 / 460, 6)
+    assert T is not None
+    assert np.linalg.norm(T.translation() - T_w_b.translation()) < 0.01
+    assert np.linalg.norm(gtsam.Rot3.Logmap(T.rotation().between(T_w_b.rotation()))) < 0.005
+    assert sorted(set(range(13)) - set(kept.ids.tolist())) == [2, 7, 11]
+    assert kept.uv.shape == (10, 2) and kept.row.shape == (10,)
+
+
+def test_pnp_without_enough_landmarks_keeps_the_prediction_and_every_observation():
+    rng = np.random.default_rng(4)
+    T_w_c = gtsam.Pose3(gtsam.Rot3(), np.zeros(3))
+    p_w = np.array([[0.1, 0.2, 3.0], [-0.3, 0.1, 4.0], [0.2, -0.2, 2.5], [0.0, 0.3, 5.0]])
+    fr = _frame(T_w_c, p_w, 0.0, rng)
+    T, kept = locate(np.arange(4), p_w, fr, gtsam.Pose3(), gtsam.Pose3(), 0.01, 6)
+    assert T is None and kept is fr
+
+
+def test_motion_prior_is_decoupled_from_attitude_and_grows_with_the_interval():
+    """Unlike preintegrated still readings, tilting the start attitude moves nothing but the
+    rotation residual; position sigma q dt^1.5 / sqrt(3), velocity q sqrt(dt)."""
+    C = motion_prior_covariance(0.5, 1.0, 0.5)
+    np.testing.assert_allclose(np.sqrt(np.diag(C))[[0, 3, 6]], [0.5 * np.sqrt(0.5), 0.5 ** 1.5 / np.sqrt(3), np.sqrt(0.5)])
+    assert np.all(np.diag(motion_prior_covariance(3.0, 1.0, 0.5)) > np.diag(C))
+    f = motion_prior_factor([X(0), V(0), X(1), V(1)], 0.5, 1.0, 0.5)
+    vals = gtsam.Values()
+    v0 = np.array([0.5, -0.2, 0.1])
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.2, 0.1), np.array([1.0, 2.0, 3.0])))
+    vals.insert(V(0), v0)
+    vals.insert(X(1), gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.2, 0.1), np.array([1.0, 2.0, 3.0]) + 0.5 * v0))
+    vals.insert(V(1), v0)
+    assert f.error(vals) < 1e-18
+    tilted = gtsam.Values(vals)
+    tilted.update(X(1), gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.1, 0.1), np.array([1.0, 2.0, 3.0]) + 0.5 * v0))
+    # 0.1 rad of tilt costs (0.1 / (0.5 sqrt(0.5)))^2 / 2 = 0.04, independent of position
+    assert abs(f.error(tilted) - 0.5 * (0.1 / (0.5 * np.sqrt(0.5))) ** 2) < 2e-3
