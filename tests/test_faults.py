@@ -329,6 +329,8 @@ def test_forced_divergence_restarts_softly_without_a_jump(tmp_path, caplog):
                 kicked = True
     assert kicked and pipe.est.divergences >= 1 and pipe.est.recoveries == 0
     assert "divergence at keyframe" in caplog.text and "soft restart" in caplog.text
+    # 1.5 s after the restart the dynamic alignment re-initializes the window (vio.reinit)
+    assert pipe.reinit.count == 1 and "re-initialized after the restart" in caplog.text
     from vio.conventions import quat_wxyz_from_rot
     t = np.array([o.t_ns for o in outs])
     p = np.array([o.T_w_b.translation() for o in outs])
@@ -338,4 +340,4 @@ def test_forced_divergence_restarts_softly_without_a_jump(tmp_path, caplog):
     i = restarted.index(True)
     assert np.linalg.norm(np.diff(p[i:], axis=0), axis=1).max() < 0.15   # keyframe corrections
     e = evaluate(t[i:], p[i:], q[i:], data.groundtruth)
-    assert e.ate_rmse < 0.06, e.ate_rmse   # 0.039 m over 0.95 m
+    assert e.ate_rmse < 0.06, e.ate_rmse   # 0.036 m over 0.95 m (0.039 m without the re-initialization)

@@ -26,6 +26,7 @@ from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 from vio.memory import trim_heap, tune_heap
+from vio.reinit import Reinit
 from vio.sync import FramePacket
 
 log = logging.getLogger(__name__)
@@ -103,7 +104,10 @@ class Pipeline:
         self.imu_calib = imu_calib
         if cfg.tune_heap:
             tune_heap()
+        self.cam1 = cam1
         self.est = Estimator(imu_calib, cam, cfg.backend, cfg.td_s, cam1)
+        self.reinit = Reinit(self)   # after a divergence (HealthConfig.reinit)
+        self.muted = False           # replaying a re-initialization's buffer: no outputs
         self._init_buf: list[FramePacket] = []
         self.sinks: list[Callable[[FrameOutput], None]] = []
         self._recent: deque[FramePacket] = deque()
@@ -163,7 +167,9 @@ class Pipeline:
             self._recent.popleft()
         if not self.est.initialized:
             return self._initialize(pkt, t0)
-        return [self._step(pkt, t0)]
+        out = self._step(pkt, t0)
+        self.reinit.after_step(pkt, out)
+        return [out]
 
     def _step(self, pkt: FramePacket, t0: float) -> FrameOutput:
         self._maybe_trim(pkt.t_ns)
@@ -329,6 +335,6 @@ class Pipeline:
                           0 if pkt.features is None else len(pkt.features.ids),
                           self.est.lm.n_active(), self.est.td(), self.est.extrinsic(), ids, pts,
                           pkt.features, pkt)
-        for sink in self.sinks:
+        for sink in ([] if self.muted else self.sinks):
             sink(out)
         return out

@@ -40,6 +40,8 @@ class RunResult:
     qr_resolves: int = 0
     """Updates GTSAM's Cholesky refused and QR re-solved (``vio.backend.smoother``)."""
     restarts: int = 0
+    reinits: int = 0
+    """Re-initializations after a divergence restart (``vio.reinit``)."""
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
     imu_dropped: int = 0
@@ -221,6 +223,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     if not cfg.live:   # the live backend's counters stay in its process
         res.init = pipe.init_info
         res.restarts = pipe.est.divergences
+        res.reinits = pipe.reinit.count
         res.qr_resolves = pipe.est.qr_resolves
         res.imu_gaps = len(pipe.imu_gaps)
         res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
@@ -255,7 +258,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
              f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"
              + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else ""),
              f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
-             f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"]
+             f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
+             + (f", {res.reinits} re-initialization(s)" if res.reinits else "")]
     if res.init is None:
         lines.append("initialization  " + ("not reached" if not res.outputs else
                                            "in the live backend process (not reported)"))

@@ -27,7 +27,9 @@ and yaw (unobservable) tight, roll and pitch ``restart_rp_sigma`` rad, velocity
 ``restart_vel_sigma`` m/s, biases ``restart_accel_bias_sigma`` m/s^2 /
 ``restart_gyro_bias_sigma`` rad/s (a healthy estimate, tighter than the initial prior:
 the restarted window has no landmarks yet). Only a non-finite state is checked for
-``cooldown_keyframes`` keyframes after a (re)start.
+``cooldown_keyframes`` keyframes after a (re)start. With ``reinit`` the pipeline then
+re-initializes the window by dynamic alignment over the frames after the restart
+(``vio.reinit``): the restart's guess can be as wrong as the state it replaced.
 
 Worst values on clean real runs (``benchmarks/bench_faults.py``; V1_01 features, MH_05
 mono, MH_01 stereo): speed 1.5 m/s, bias 2.8 sigmas, windowed inlier ratio 0.70, IMU
@@ -62,6 +64,7 @@ class HealthConfig:
     restart_rp_sigma: float = 0.1
     restart_accel_bias_sigma: float = 0.05
     restart_gyro_bias_sigma: float = 0.003
+    reinit: bool = True
 
 
 @dataclass(frozen=True)
