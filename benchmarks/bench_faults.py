@@ -2,7 +2,7 @@
 with and without the fault handling; the screen on every clean real IMU file; the
 divergence monitor's worst values on clean runs. Prints tables, asserts nothing.
 
-    python benchmarks/bench_faults.py [--at 15] [--columns none,monitor,full]
+    python benchmarks/bench_faults.py [--at 15 | --at 4,7,11,15,19,23,27] [--columns none,monitor,full]
                                       [--monitor-modes features,mono,stereo]
 
 Faults are injected into copies of ``../shared/data/euroc_V1_01_30s_features`` written to a
@@ -90,10 +90,16 @@ def run(root: Path, level: str) -> dict:
                 est=len(res.outputs), n=res.frames_in, wall=wall)
 
 
-def fault_table(at: float, columns: list[str]) -> None:
+TARGETS = (("IMU gap 0.5 s", 1, 0.05), ("IMU gap 3 s", 2, 0.15), ("accel sample 200 m/s^2", 3, 0.04))
+"""Issue 16's bounds (ATE m): (label, row of ``scenarios``, bound)."""
+
+
+def fault_table(at: float, columns: list[str]) -> list[float]:
+    """Print the scenarios at ``at`` s; returns the last column's ATE per scenario."""
     print(f"\nFaults on real V1_01 features (30 s, 8.2 m), injected {at:g} s in; ATE RMSE (m)")
     print(f"{'scenario':32s} " + " ".join(f"{c:>8s}" for c in columns) +
           f" {'gaps':>5s} {'drop':>5s} {'rest.':>5s} {'frames':>9s} {'wall s':>7s}")
+    ates: list[float] = []
     with tempfile.TemporaryDirectory(prefix="bench_faults_") as tmp:
         for name, fault in scenarios(at):
             root = inject.copy_dataset(V1_01, Path(tmp) / "run")
@@ -103,6 +109,18 @@ def fault_table(at: float, columns: list[str]) -> None:
             print(f"{name:32s} " + " ".join(f"{r[c]['ate']:8.4f}" for c in columns) +
                   f" {last['gaps']:5d} {last['dropped']:5d} {last['restarts']:5d} "
                   f"{last['est']:4d}/{last['n']:<4d} {last['wall']:7.1f}", flush=True)
+            ates.append(last["ate"])
+    return ates
+
+
+def target_table(times: list[float], ates: list[list[float]]) -> None:
+    """Issue 16's fault bounds at every injection time (the last column's handling)."""
+    print("\nIssue 16 bounds by injection time (ATE m; * over the bound)")
+    print(f"{'fault':24s} {'bound':>6s} " + " ".join(f"{t:>7g}s" for t in times) + "   met")
+    for label, row, bound in TARGETS:
+        vals = [a[row] for a in ates]
+        print(f"{label:24s} {bound:6.2f} " + " ".join(f"{v:7.3f}{'*' if v > bound else ' '}" for v in vals)
+              + f"   {sum(v <= bound for v in vals)}/{len(vals)}")
 
 
 def screen_table() -> None:
@@ -150,14 +168,19 @@ def monitor_table(modes: list[str]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--at", type=float, default=15.0)
+    ap.add_argument("--at", default="15", help="comma list of injection times (s after the first IMU "
+                    "sample), e.g. 4,7,11,15,19,23,27; more than one adds the bounds table")
     ap.add_argument("--columns", default="none,full", help="comma list of none,monitor,full")
     ap.add_argument("--monitor-modes", default="features", help="comma list of features,mono,stereo")
     a = ap.parse_args()
     if not V1_01.exists():
         sys.exit(f"{V1_01} not found (../shared/data)")
     screen_table()
-    fault_table(a.at, [c for c in a.columns.split(",") if c])
+    times = [float(t) for t in a.at.split(",") if t]
+    cols = [c for c in a.columns.split(",") if c]
+    ates = [fault_table(t, cols) for t in times]
+    if len(times) > 1:
+        target_table(times, ates)
     monitor_table([m for m in a.monitor_modes.split(",") if m])
 
 
