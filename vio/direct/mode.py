@@ -91,6 +91,14 @@ class DirectStage:
         # direct after initialization: no image is read here; the source reads a
         # keyframe's pair when it observes it (two PNG decodes per frame were ~20% of
         # direct mode's time on real MH_01, where 3 frames in 10 are keyframes)
+        if pkt.imu_gaps:
+            # across an IMU gap the predicted flow measures nothing (the packet's IMU is
+            # interpolated over the gap): no flow points, so every frame past the minimum
+            # interval is a keyframe and TrackFrame extrapolates over short intervals only
+            # (real MH_01, 3-s gap 6 s in: keyframes every 0.3 s, TrackFrame failed at
+            # four of them and the estimate slid 0.49 m)
+            return dataclasses.replace(pkt, features=FeatureFrame(pkt.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)),
+                                                                  np.zeros((0, 2)), np.zeros(0)))
         return dataclasses.replace(pkt, features=self._flow_features(pkt))
 
     def _predict(self, pkt: FramePacket) -> gtsam.Pose3:
