@@ -300,17 +300,35 @@ class Pipeline:
                       str(exc).splitlines()[0][:120])
             self.est.smoother = None
             return False
-        self.est.rates.add_keyframe(0, pkt.t_ns, pkt.imu.gyro[-1])
-        self.est.lm.observe(0, self._features(pkt))
-        for src in self.est.sources:
-            src.observe(0, pkt)
-        self._kf_features, self._kf_t = pkt.features, pkt.t_ns
+        self._first_keyframe(pkt)
         self.n_keyframes = 1
         t_first = self._t_first if self._t_first is not None else pkt.t_ns
         self.init_info = InitInfo(state.method, (now.t_ns - t_first) * 1e-9, (pkt.t_ns - t_first) * 1e-9)
         log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,
                  np.round(state.bias.gyroscope(), 4))
         return True
+
+    def _first_keyframe(self, pkt: FramePacket) -> None:
+        """The observations of the keyframe an estimator was just initialized at."""
+        self.est.rates.add_keyframe(0, pkt.t_ns, pkt.imu.gyro[-1])
+        self.est.lm.observe(0, self._features(pkt))
+        for src in self.est.sources:
+            src.observe(0, pkt)
+        self._kf_features, self._kf_t = pkt.features, pkt.t_ns
+
+    def adopt(self, est: Estimator, buf: list[FramePacket]) -> None:
+        """Let ``est``, initialized at ``buf[0]``, take over: ``buf[1:]`` is replayed
+        through it without outputs (``vio.reinit``); the keyframe count stays."""
+        n = self.n_keyframes
+        self.est = est
+        self._first_keyframe(buf[0])
+        self.muted = True
+        try:
+            for p in buf[1:]:
+                self._step(p, time.perf_counter())
+        finally:
+            self.muted = False
+        self.n_keyframes = n
 
     def _is_keyframe(self, pkt: FramePacket) -> bool:
         kc = self.cfg.backend.keyframe

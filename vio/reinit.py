@@ -33,7 +33,6 @@ is the bridge's: 3 s of vision alone with 7-14 landmarks.
 from __future__ import annotations
 
 import logging
-import time
 
 import gtsam
 import numpy as np
@@ -118,18 +117,7 @@ class Reinit:
             log.error("re-initialization refused by the solver (%s); the soft restart's window "
                       "carries on", str(exc).splitlines()[0][:120])
             return
-        kf = pipe.n_keyframes, pipe._kf_features, pipe._kf_t
-        pipe.est = new
-        new.rates.add_keyframe(0, buf[0].t_ns, buf[0].imu.gyro[-1])
-        new.lm.observe(0, pipe._features(buf[0]))
-        pipe._kf_features, pipe._kf_t = buf[0].features, buf[0].t_ns
-        pipe.muted = True
-        try:
-            for p in buf[1:]:
-                pipe._step(p, time.perf_counter())
-        finally:
-            pipe.muted = False
-        pipe.n_keyframes = kf[0]
+        pipe.adopt(new, buf)
         self._seen = new.divergences
         self.count += 1
         T_now, T_old = new.latest()[0], old.latest()[0]
