@@ -121,7 +121,8 @@ class Reinit:
         self._seen = new.divergences
         self.count += 1
         T_now, T_old = new.latest()[0], old.latest()[0]
-        log.warning("t=%d ns: re-initialized after the restart at t=%d ns (dynamic alignment over "
-                    "%.2f s, re-initialization #%d): position and yaw kept from the restart; the "
-                    "output steps by %.3f m to the aligned estimate", buf[-1].t_ns, buf[0].t_ns, span,
-                    self.count, float(np.linalg.norm(T_now.translation() - T_old.translation())))
+        log.warning("t=%d ns: re-initialized after a divergence restart, from t=%d ns (dynamic "
+                    "alignment over %.2f s, re-initialization #%d): position and yaw of that "
+                    "frame's output kept; the output steps by %.3f m to the aligned estimate",
+                    buf[-1].t_ns, buf[0].t_ns, span, self.count,
+                    float(np.linalg.norm(T_now.translation() - T_old.translation())))
