@@ -205,8 +205,7 @@ class Pipeline:
     def _features(self, pkt: FramePacket) -> FeatureFrame:
         if pkt.features is not None:
             return pkt.features
-        return FeatureFrame(pkt.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
-                            np.zeros(0))
+        return FeatureFrame.empty(pkt.t_ns)
 
     def _initialize(self, pkt: FramePacket, t0: float) -> list[FrameOutput]:
         """With cam1 the stereo-inertial alignment over the first frames; otherwise (or

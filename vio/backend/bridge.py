@@ -24,7 +24,6 @@ gaps stay at 0.025-0.030 m.)
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -70,11 +69,7 @@ def locate(ids_w: np.ndarray, p_w: np.ndarray, fr: FeatureFrame, pred: gtsam.Pos
         q = T_c_w.transformFrom(p)
         if not (q[2] > 0 and np.linalg.norm(q[:2] / q[2] - uv) <= thresh):
             keep[i] = False
-    if keep.all():
-        return T_w_b, fr
-    sub = {f: getattr(fr, f)[keep] if getattr(fr, f) is not None else None
-           for f in ("ids", "uv", "velocity", "row", "right_uv", "right_velocity")}
-    return T_w_b, replace(fr, **sub)
+    return T_w_b, (fr if keep.all() else fr.subset(keep))
 
 
 def gate_bridged(est, features: FeatureFrame, pred: gtsam.NavState,

@@ -110,7 +110,7 @@ def init_window(packets: list, step_s: float) -> InitWindow:
             chosen.append(p)
             segs.append(concat(pending))
             pending = []
-    empty = FeatureFrame(0, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+    empty = FeatureFrame.empty(0)
     return InitWindow(tuple(p.t_ns for p in chosen),
                       tuple(p.features if p.features is not None else empty for p in chosen),
                       tuple(segs), concat([p.imu for p in packets]))

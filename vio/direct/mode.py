@@ -97,8 +97,7 @@ class DirectStage:
             # interval is a keyframe and TrackFrame extrapolates over short intervals only
             # (real MH_01, 3-s gap 6 s in: keyframes every 0.3 s, TrackFrame failed at
             # four of them and the estimate slid 0.49 m)
-            return dataclasses.replace(pkt, features=FeatureFrame(pkt.t_ns, np.zeros(0, np.int64), np.zeros((0, 2)),
-                                                                  np.zeros((0, 2)), np.zeros(0)))
+            return dataclasses.replace(pkt, features=FeatureFrame.empty(pkt.t_ns))
         return dataclasses.replace(pkt, features=self._flow_features(pkt))
 
     def _predict(self, pkt: FramePacket) -> gtsam.Pose3:

@@ -145,6 +145,18 @@ class FeatureFrame:
     right_uv: np.ndarray | None = None
     right_velocity: np.ndarray | None = None
 
+    @classmethod
+    def empty(cls, t_ns: int) -> "FeatureFrame":
+        """A frame at ``t_ns`` with no observation."""
+        return cls(t_ns, np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
+
+    def subset(self, keep: np.ndarray) -> "FeatureFrame":
+        """The observations selected by ``keep`` ((M,) bool or indices), same time."""
+        def pick(a):
+            return None if a is None else a[keep]
+        return FeatureFrame(self.t_ns, self.ids[keep], self.uv[keep], self.velocity[keep], self.row[keep],
+                            pick(self.right_uv), pick(self.right_velocity))
+
 
 @dataclass(frozen=True)
 class CameraStream:
