@@ -86,7 +86,9 @@ class RefineConfig:
     at the scaled state (:func:`vio.backend.regauge.apply_similarity`; with
     ``ba_apply_tilt`` also the batch's gravity direction); ``ba_min_significance``: a batch
     whose scale is within that many of its own sigmas of the smoother's (``|ln s| < k
-    sigma``) is not applied (0: every accepted batch is).
+    sigma``) is not applied (0: every accepted batch is). ``scale_prior_sigma`` > 0 holds
+    the inertial problem's scale at 1 with that relative sigma (gravity alone: the
+    re-alignment after an IMU gap, :mod:`vio.backend.realign`).
 
     Off by default. Measured with ``enabled: true`` (viba, prior, every 2 s from 3 s over
     15 s of history), SE3 ATE before -> after: real MH_05 mono 15 s 0.130 -> 0.078 m;
@@ -163,6 +165,7 @@ class RefineConfig:
     max_tracks: int = 400
     min_depth_m: float = 0.2
     max_depth_m: float = 60.0
+    scale_prior_sigma: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -228,9 +231,10 @@ class Refinement:
 
 def _residuals(x: np.ndarray, R: np.ndarray, c: np.ndarray, t_bc: np.ndarray, ivs: list[Interval],
                g0: np.ndarray, W: np.ndarray, ba_sigma: float, ba0: np.ndarray,
-               pos_sigma: float) -> np.ndarray:
+               pos_sigma: float, s_sigma: float = 0.0) -> np.ndarray:
     """Whitened residuals (6 per interval, then the bias prior) at ``x = [s, a_x, a_y,
-    dba(3), v (3N)]``: one accelerometer bias ``ba0 + dba`` for all intervals (the
+    dba(3), v (3N), e (3N)]``, then ``(s - 1) / s_sigma`` when ``s_sigma`` > 0 (the
+    scale held); one accelerometer bias ``ba0 + dba`` for all intervals (the
     smoother's bias may have drifted to absorb a wrong scale); ``W`` (M, 6, 6) the
     intervals' whitening matrices."""
     s, a, dba = x[0], np.r_[x[1:3], 0.0], x[3:6]
@@ -248,7 +252,8 @@ def _residuals(x: np.ndarray, R: np.ndarray, c: np.ndarray, t_bc: np.ndarray, iv
     rp = np.einsum("kab,kb->ka", RiT, p[j] - p[i] - v[i] * dt - 0.5 * g * dt ** 2) - dp
     rv = np.einsum("kab,kb->ka", RiT, v[j] - v[i] - g * dt) - dv
     r = np.einsum("kab,kb->ka", W, np.hstack([rp, rv]))
-    return np.r_[r.ravel(), dba / ba_sigma, e.ravel() / pos_sigma]
+    out = np.r_[r.ravel(), dba / ba_sigma, e.ravel() / pos_sigma]
+    return np.r_[out, (s - 1.0) / s_sigma] if s_sigma > 0 else out
 
 
 def solve(T_w_b: list[gtsam.Pose3], v0: np.ndarray, ivs: list[Interval], T_b_c: gtsam.Pose3,
@@ -263,7 +268,8 @@ def solve(T_w_b: list[gtsam.Pose3], v0: np.ndarray, ivs: list[Interval], T_b_c: 
     W = np.array([np.linalg.inv(np.linalg.cholesky(iv.cov)) for iv in ivs])
     x = np.r_[1.0, 0.0, 0.0, np.zeros(3), np.asarray(v0, float).ravel(), np.zeros(3 * len(R))]
     ba0 = np.mean([iv.ba for iv in ivs], axis=0)
-    args = (R, c, t_bc, ivs, np.asarray(gravity, float), W, cfg.accel_bias_sigma, ba0, cfg.pos_sigma_m)
+    args = (R, c, t_bc, ivs, np.asarray(gravity, float), W, cfg.accel_bias_sigma, ba0, cfg.pos_sigma_m,
+            cfg.scale_prior_sigma)
     H = np.eye(len(x))
     for _ in range(cfg.iterations):
         r = _residuals(x, *args)
@@ -292,7 +298,7 @@ def solve(T_w_b: list[gtsam.Pose3], v0: np.ndarray, ivs: list[Interval], T_b_c: 
 def _jacobian(x: np.ndarray, r: np.ndarray, args: tuple) -> np.ndarray:
     """Jacobian of :func:`_residuals`: forward differences for the six global
     parameters, analytic (the residuals are linear in them) columns for the velocities."""
-    R, _, _, ivs, _, W, _, _, pos_sigma = args
+    R, _, _, ivs, _, W, _, _, pos_sigma, _ = args
     n = len(R)
     J = np.zeros((len(r), len(x)))
     for k, h in enumerate([1e-6, 1e-7, 1e-7, 1e-6, 1e-6, 1e-6]):
@@ -312,7 +318,7 @@ def _jacobian(x: np.ndarray, r: np.ndarray, args: tuple) -> np.ndarray:
         J[rows, o + 3 * iv.j:o + 3 * iv.j + 3] += We
         J[rows, o + 3 * iv.i:o + 3 * iv.i + 3] -= We
     m0 = 6 * len(ivs) + 3
-    J[m0:, 6 + 3 * n:] = np.eye(3 * n) / pos_sigma
+    J[m0:m0 + 3 * n, 6 + 3 * n:] = np.eye(3 * n) / pos_sigma
     return J
 
 
