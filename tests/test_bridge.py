@@ -67,3 +67,40 @@ def test_motion_prior_is_decoupled_from_attitude_and_grows_with_the_interval():
     tilted.update(X(1), gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.1, 0.1), np.array([1.0, 2.0, 3.0]) + 0.5 * v0))
     # 0.1 rad of tilt costs (0.1 / (0.5 sqrt(0.5)))^2 / 2 = 0.04, independent of position
     assert abs(f.error(tilted) - 0.5 * (0.1 / (0.5 * np.sqrt(0.5))) ** 2) < 2e-3
+
+
+def test_pnp_failing_leaves_out_the_observations_far_from_the_prediction():
+    """Too few landmarks for PnP: the prediction gates the observations instead
+    (``BridgeConfig.pred_gate_px``); without the gate every observation stays."""
+    rng = np.random.default_rng(5)
+    T_w_c = gtsam.Pose3(gtsam.Rot3(), np.zeros(3))
+    p_w = np.array([[0.1, 0.2, 3.0], [-0.3, 0.1, 4.0], [0.2, -0.2, 2.5], [0.0, 0.3, 5.0]])
+    fr = _frame(T_w_c, p_w, 0.0, rng)
+    uv = fr.uv.copy()
+    uv[1] += 0.05                                   # one track jumps by ~23 px at fx 460
+    fr = FeatureFrame(0, fr.ids, uv, fr.velocity, fr.row)
+    T, kept = locate(np.arange(4), p_w, fr, gtsam.Pose3(), gtsam.Pose3(), 6 / 460, 6, 10 / 460)
+    assert T is None and kept.ids.tolist() == [0, 2, 3]
+    assert locate(np.arange(4), p_w, fr, gtsam.Pose3(), gtsam.Pose3(), 6 / 460, 6)[1] is fr
+
+
+def test_gyro_rotation_factor_holds_the_relative_attitude_and_frees_the_translation():
+    from vio.backend.bridge import gyro_rotation_factor
+    params = gtsam.PreintegrationCombinedParams.MakeSharedU(9.81)
+    params.setGyroscopeCovariance(1e-6 * np.eye(3))
+    params.setAccelerometerCovariance(1e-4 * np.eye(3))
+    params.setIntegrationCovariance(1e-8 * np.eye(3))
+    params.setBiasAccCovariance(1e-8 * np.eye(3))
+    params.setBiasOmegaCovariance(1e-10 * np.eye(3))
+    pim = gtsam.PreintegratedCombinedMeasurements(params, gtsam.imuBias.ConstantBias())
+    for _ in range(40):
+        pim.integrateMeasurement(np.array([0.0, 0.0, 9.81]), np.array([0.3, -0.2, 0.5]), 0.005)
+    f = gyro_rotation_factor(0, 1, pim, 0.002)
+    T0 = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, 0.1, -0.2), np.array([1.0, 2.0, 3.0]))
+    vals = gtsam.Values()
+    vals.insert(X(0), T0)
+    vals.insert(X(1), gtsam.Pose3(T0.rotation().compose(pim.deltaRij()), np.array([5.0, -4.0, 0.3])))
+    assert f.error(vals) < 1e-4                      # any translation (sigma 1 km)
+    vals.update(X(1), gtsam.Pose3(T0.rotation().compose(pim.deltaRij()).compose(gtsam.Rot3.Rx(0.01)),
+                                  np.zeros(3)))
+    assert f.error(vals) > 10.0                      # 0.01 rad against sigmas below 1e-3 rad

@@ -48,19 +48,24 @@ def bridge_factors(k0: int, k1: int, dt_s: float, accel_density: float, gyro_den
             gtsam.BetweenFactorConstantBias(B(k0), B(k1), gtsam.imuBias.ConstantBias(), walk)]
 
 
-def locate(ids_w: np.ndarray, p_w: np.ndarray, fr: FeatureFrame, pred: gtsam.Pose3, T_b_c: gtsam.Pose3,
-           thresh: float, min_inliers: int) -> tuple[gtsam.Pose3 | None, FeatureFrame]:
-    """``T_w_b`` of the frame ``fr`` (normalized cam0 observations) by RANSAC PnP against
-    the landmarks ``ids_w`` (N,) at world points ``p_w`` (N, 3), from the predicted body
-    pose ``pred``; ``thresh``: inlier error (normalized units). Returns (pose or None,
-    ``fr`` without the observations of landmarks PnP rejected)."""
-    pts = {int(i): np.asarray(p, float) for i, p in zip(ids_w, p_w)}
-    T_w_c0 = pred.compose(T_b_c)
-    pose_c, n = pnp_pose(pts, fr, T_w_c0, thresh, min_inliers)
-    if pose_c is None:
-        return None, fr
-    T_w_b = pose_c.compose(T_b_c.inverse())
-    T_c_w = pose_c.inverse()
+def gyro_rotation_factor(k0: int, k1: int, pim: gtsam.PreintegratedCombinedMeasurements,
+                         bias_sigma: float) -> gtsam.NonlinearFactor:
+    """The gyro's share of an interval whose IMU factor is held back (the gravity
+    re-alignment after a gap, ``vio.backend.realign``): the relative attitude of keyframes
+    k0 and k1 from ``pim``'s preintegrated rotation, which a tilted world does not affect.
+    Sigma per axis: the preintegration's plus ``bias_sigma`` (rad/s) times the interval;
+    the translation is left free (1 km)."""
+    dt = max(pim.deltaTij(), 1e-3)
+    c = np.diag(np.asarray(pim.preintMeasCov())[:3, :3])
+    sig = np.sqrt(np.maximum(c, 0.0) + (bias_sigma * dt) ** 2)
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[sig, np.full(3, 1e3)])
+    return gtsam.BetweenFactorPose3(X(k0), X(k1), gtsam.Pose3(pim.deltaRij(), np.zeros(3)), noise)
+
+
+def _gated(pts: dict[int, np.ndarray], fr: FeatureFrame, T_w_c: gtsam.Pose3, thresh: float) -> FeatureFrame:
+    """``fr`` without the observations of landmarks in ``pts`` (id -> world point) that
+    camera pose ``T_w_c`` re-projects farther than ``thresh`` (normalized) or behind it."""
+    T_c_w = T_w_c.inverse()
     keep = np.ones(len(fr.ids), bool)
     for i, (lid, uv) in enumerate(zip(fr.ids, fr.uv)):
         p = pts.get(int(lid))
@@ -69,7 +74,22 @@ def locate(ids_w: np.ndarray, p_w: np.ndarray, fr: FeatureFrame, pred: gtsam.Pos
         q = T_c_w.transformFrom(p)
         if not (q[2] > 0 and np.linalg.norm(q[:2] / q[2] - uv) <= thresh):
             keep[i] = False
-    return T_w_b, (fr if keep.all() else fr.subset(keep))
+    return fr if keep.all() else fr.subset(keep)
+
+
+def locate(ids_w: np.ndarray, p_w: np.ndarray, fr: FeatureFrame, pred: gtsam.Pose3, T_b_c: gtsam.Pose3,
+           thresh: float, min_inliers: int, pred_thresh: float = np.inf) -> tuple[gtsam.Pose3 | None, FeatureFrame]:
+    """``T_w_b`` of the frame ``fr`` (normalized cam0 observations) by RANSAC PnP against
+    the landmarks ``ids_w`` (N,) at world points ``p_w`` (N, 3), from the predicted body
+    pose ``pred``; ``thresh``: inlier error (normalized units). Returns (pose or None,
+    ``fr`` without the observations of landmarks PnP rejected; when PnP fails, without
+    those the prediction re-projects farther than ``pred_thresh``)."""
+    pts = {int(i): np.asarray(p, float) for i, p in zip(ids_w, p_w)}
+    T_w_c0 = pred.compose(T_b_c)
+    pose_c, n = pnp_pose(pts, fr, T_w_c0, thresh, min_inliers)
+    if pose_c is None:
+        return None, (fr if not np.isfinite(pred_thresh) else _gated(pts, fr, T_w_c0, pred_thresh))
+    return pose_c.compose(T_b_c.inverse()), _gated(pts, fr, pose_c, thresh)
 
 
 def gate_bridged(est, features: FeatureFrame, pred: gtsam.NavState,
@@ -82,9 +102,14 @@ def gate_bridged(est, features: FeatureFrame, pred: gtsam.NavState,
     if len(ids) < est.cfg.bridge.pnp_min_inliers:
         return pred, features
     thresh = vc.outlier_px / est.cam.intrinsics[0]
-    T, out = locate(ids, pts, features, pred.pose(), est.extrinsic(), thresh, est.cfg.bridge.pnp_min_inliers)
+    bc = est.cfg.bridge
+    T, out = locate(ids, pts, features, pred.pose(), est.extrinsic(), thresh, bc.pnp_min_inliers,
+                    bc.pred_gate_px / est.cam.intrinsics[0])
     if T is None:
-        return pred, features
+        log.info("keyframe %d (bridged window): PnP failed on %d window landmarks; %d observation(s) "
+                 "farther than %.0f px from the prediction left out", est.k + 1, len(ids),
+                 len(features.ids) - len(out.ids), bc.pred_gate_px)
+        return pred, out
     dropped = len(features.ids) - len(out.ids)
     log.info("keyframe %d (bridged window) located by PnP on %d window landmarks (%.3f m from "
              "its prediction); %d observation(s) left out", est.k + 1, len(ids),

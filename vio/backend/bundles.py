@@ -47,6 +47,7 @@ import numpy as np
 from factors import landmark_schur
 from factors.projection import tangent_basis
 from vio.backend import graph
+from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Track
 from vio.backend.tracks import LandmarkManager
 
@@ -294,8 +295,9 @@ class EliminatedLandmarks(LandmarkManager):
         checked = [tr for tr, o in zip(members, ok) if o]
         table = graph.camera_table(values, sorted(self.est.kf_t))
         worst = graph.worst_reprojection_errors(checked, values, table, np.array([tr.lam for tr in checked])) * fx
+        limit = outlier_limit_px(self.est)
         bad = {tr.lid for tr, o in zip(members, ok) if not o} | {
-            tr.lid for tr, e in zip(checked, worst) if e > vc.outlier_px}
+            tr.lid for tr, e in zip(checked, worst) if e > limit}
         for a in sorted(self.groups):
             ms, bundle, keys = self.groups[a]
             hit = [i for i, tr in enumerate(ms) if tr.lid in bad and bundle.active[i]]

@@ -25,6 +25,7 @@ from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
 from vio.backend.gauge import GaugeAnchor
 from vio.backend.outlier_carry import OutlierCarry
+from vio.backend.realign import GapRealign
 from vio.backend.regauge import ScaleRefiner
 from vio.backend.td_reanchor import maybe_reanchor_td
 from vio.backend.bundles import EliminatedLandmarks
@@ -122,6 +123,7 @@ class Estimator:
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
         self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
+        self.realign = GapRealign(cfg.bridge, np.asarray(self.params.n_gravity, float))
         self.gauge = GaugeAnchor(cfg.gauge)   # position and yaw held in the window (vio.backend.gauge)
         self.carry = OutlierCarry()           # SolverConfig.outlier_update "next_frame"
 
@@ -165,6 +167,7 @@ class Estimator:
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)
         self.refiner.reset()
+        self.realign.reset()
         self.k = k
         self.kf_t = {k: state.t_ns}
         self.still_kf = set()
@@ -238,14 +241,19 @@ class Estimator:
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
         bridged = self._bridge_t is not None
-        if bridged:   # the still readings served the prediction only (vio.imu.integrate_still)
+        held = self.realign.holding(bridged, self.kf_t[k0], t_ns)   # vio.backend.realign
+        if held:   # the still readings served the prediction only (vio.imu.integrate_still)
             bc = self.cfg.bridge
             fs = bridge.bridge_factors(k0, k1, (t_ns - self.kf_t[k0]) * 1e-9, bc.accel_density,
                                       bc.gyro_density, self.bias_walk)
-            self.bridged += 1
-            log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
-                     t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
-            self._bridge_t = None
+            if bridged:
+                self.bridged += 1
+                log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
+                         t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
+                self._bridge_t = None
+            else:   # the IMU is back, the world may be tilted: vio.backend.realign
+                fs.append(bridge.gyro_rotation_factor(k0, k1, self.pim, bc.realign_gyro_sigma))
+                self.realign.record(k0, k1, self.pim)
         else:
             fs = [graph.imu_factor(k0, k1, self.pim)]
         f_imu = fs[0]
@@ -254,10 +262,10 @@ class Estimator:
         if still:
             g.add(graph.zero_velocity(k1, self.cfg.init.zupt_sigma))
             self.still_kf.add(k1)
-        if bridged:
+        if held:
             self.bridged_kf.add(k1)
         if self.bridged_kf and self.cfg.bridge.pnp_gate:   # bridged states in the window: vision holds them
-            pred, features = bridge.gate_bridged(self, features, pred, keep_pose=not bridged)
+            pred, features = bridge.gate_bridged(self, features, pred, keep_pose=not held)
         v.insert(X(k1), pred.pose())
         v.insert(V(k1), pred.velocity())
         v.insert(B(k1), b0)
@@ -292,7 +300,8 @@ class Estimator:
         if not recovered and self.k == k1:
             recovery.check_health(self, t_ns, n_removed, f_imu)
         if not recovered and self.k == k1 and self.divergences == div0:
-            self.refiner.keyframe(self, k0, k1, t_ns, self.pim, bridged, features)
+            self.refiner.keyframe(self, k0, k1, t_ns, self.pim, held, features)
+            self.realign.step(self, t_ns)
         if not recovered and self.k == k1:
             maybe_reanchor_td(self)
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])

@@ -31,6 +31,7 @@ import numpy as np
 from factors.jit import njit
 from factors.world_point import world_point_factor
 from vio.backend import graph
+from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Obs
 from vio.backend.td_velocity import points_velocities
 from vio.backend.track_arrays import gather
@@ -202,7 +203,7 @@ class PointTracks:
     def outlier_removals(self, values: gtsam.Values, g: gtsam.NonlinearFactorGraph, stamps: dict,
                          removals: list[int]) -> list[int]:
         """Ids of points whose reprojection error in their main factor exceeds
-        ``outlier_px`` (observations moved by the current td) or that leave the depth
+        ``outlier_px`` (``health.outlier_limit_px``; observations moved by the current td) or that leave the depth
         range: the factor is removed and a weak prior keeps the key determined until the
         smoother marginalizes it."""
         vc = self.est.cfg.vision
@@ -223,8 +224,9 @@ class PointTracks:
         point_worst_errors(start, j, np.ascontiguousarray(ob[:, :2]), vel, off, P, R, t, td,
                            float(vc.min_depth_m), float(vc.max_depth_m), worst)
         bad = []
+        limit = outlier_limit_px(self.est)
         for (lid, pt), p, e in zip(cand, P, worst * fx):
-            if e > vc.outlier_px:
+            if e > limit:
                 removals.append(pt.index)
                 g.add(gtsam.PriorFactorVector(pt.key, p.copy(), WEAK_POINT))
                 stamps[pt.key] = 0.0

@@ -82,7 +82,7 @@ class Similarity:
                 out.insert(key, vals.atConstantBias(key))
             elif ch == "e":
                 out.insert(key, vals.atPose3(key))
-            elif ch in ("d", "z"):   # td; the padding keys (vio.backend.padding)
+            elif ch in ("d", "z", "a"):   # td; padding keys (vio.backend.padding); affine brightness (vio.direct)
                 out.insert(key, vals.atVector(key))
             else:
                 raise ValueError(f"cannot transform key {gtsam.DefaultKeyFormatter(key)}")

@@ -19,6 +19,7 @@ import numpy as np
 
 from factors.stack import Member, stacked_factor
 from vio.backend import graph
+from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
@@ -343,7 +344,8 @@ class LandmarkManager:
     # --------------------------------------------------------------- outliers
     def outlier_removals(self, values: gtsam.Values
                          ) -> tuple[gtsam.NonlinearFactorGraph, dict, list[int], int]:
-        """Factors of tracks whose worst reprojection error exceeds ``outlier_px`` or whose
+        """Factors of tracks whose worst reprojection error exceeds ``outlier_px``
+        (``health.outlier_limit_px``) or whose
         depth left the valid range. Such a track is dropped with all its observations; the
         front end's next observation of the same id starts it afresh (as VINS-Mono does),
         and only an id dropped ``max_rejections`` times is ignored for good. Rejecting at
@@ -363,7 +365,8 @@ class LandmarkManager:
             ok = lam > 0 and 1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m
             (checked if ok else bad).append(tr)
         worst = graph.worst_reprojection_errors(checked, values, table) * fx
-        bad_ids = {tr.lid for tr in bad} | {tr.lid for tr, e in zip(checked, worst) if e > vc.outlier_px}
+        limit = outlier_limit_px(self.est)
+        bad_ids = {tr.lid for tr in bad} | {tr.lid for tr, e in zip(checked, worst) if e > limit}
         for lid in list(self.tracks):
             tr = self.tracks[lid]
             if lid in bad_ids:
