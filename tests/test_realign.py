@@ -54,4 +54,6 @@ def test_three_second_gap_over_the_take_off_is_realigned(tmp_path, caplog):
     ate = evaluate(*res.arrays(), data.groundtruth).ate_rmse
     m = re.search(r"gravity re-aligned after the IMU gap .* world tilted by ([0-9.]+) deg", caplog.text)
     assert m and float(m.group(1)) > 4.0, caplog.text[-2000:]
-    assert res.restarts == 0 and ate <= 0.15, ate
+    assert res.restarts == 0 and res.realigns == 1 and ate <= 0.15, ate
+    from vio.run import summary
+    assert "1 gravity re-alignment(s)" in "\n".join(summary(res, data))

@@ -42,6 +42,8 @@ class RunResult:
     restarts: int = 0
     reinits: int = 0
     """Re-initializations after a divergence restart (``vio.reinit``)."""
+    realigns: int = 0
+    """Gravity re-alignments after a long IMU gap (``vio.backend.realign``)."""
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
     imu_dropped: int = 0
@@ -224,6 +226,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         res.init = pipe.init_info
         res.restarts = pipe.est.divergences
         res.reinits = pipe.reinit.count
+        res.realigns = pipe.est.realigned
         res.qr_resolves = pipe.est.qr_resolves
         res.imu_gaps = len(pipe.imu_gaps)
         res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
@@ -259,7 +262,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
              + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else ""),
              f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
-             + (f", {res.reinits} re-initialization(s)" if res.reinits else "")]
+             + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
+             + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")]
     if res.init is None:
         lines.append("initialization  " + ("not reached" if not res.outputs else
                                            "in the live backend process (not reported)"))

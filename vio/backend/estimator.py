@@ -100,6 +100,7 @@ class Estimator:
             cfg.health, np.r_[np.full(3, cfg.init.prior_accel_bias_sigma), np.full(3, cfg.init.prior_gyro_bias_sigma)],
             self.bias_walk)
         self.bridged = 0          # keyframe intervals bridged across IMU gaps
+        self.realigned = 0        # gravity re-alignments after a gap (vio.backend.realign)
         self.divergences = 0      # soft restarts after a divergence
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
         self._td_anchor = 0.0     # the td its keyframe time held at the last (re)start (s)

@@ -79,7 +79,6 @@ class GapRealign:
     def active(self) -> bool:
         return self.t0 is not None
 
-
     def holding(self, bridged: bool, t0_ns: int, t1_ns: int) -> bool:
         """Whether the interval ``t0_ns -> t1_ns`` keeps the motion prior instead of the
         IMU factor: it is ``bridged`` (an IMU gap), or a re-alignment is collecting."""
@@ -110,9 +109,13 @@ class GapRealign:
         res = None
         if pims:
             row = {k: n for n, k in enumerate(ks)}
-            ivs = [interval(row[a], row[b], p, self.gravity) for a, b, p in pims]
-            res = solve([est.values.atPose3(X(k)) for k in ks], np.array([est.values.atVector(V(k)) for k in ks]),
-                        ivs, est.values.atPose3(graph.EXTRINSIC), self.gravity, self.solver_cfg)
+            try:   # a singular problem is a refusal, never an exception in the frame path
+                ivs = [interval(row[a], row[b], p, self.gravity) for a, b, p in pims]
+                res = solve([est.values.atPose3(X(k)) for k in ks],
+                            np.array([est.values.atVector(V(k)) for k in ks]), ivs,
+                            est.values.atPose3(graph.EXTRINSIC), self.gravity, self.solver_cfg)
+            except (np.linalg.LinAlgError, ValueError):
+                res = None
         if res is not None and res.ok and res.gravity_change_deg < self.cfg.realign_min_sigmas * res.gravity_sigma_deg:
             log.info("t=%d ns: gravity after the IMU gap within %.1f sigma of the window's (%.2f deg, sigma "
                      "%.2f deg): IMU factors resume", t_ns, self.cfg.realign_min_sigmas,
@@ -139,6 +142,7 @@ class GapRealign:
             self._resume(est, pims)
             return
         self.applied += 1
+        est.realigned += 1
         log.warning("t=%d ns: gravity re-aligned after the IMU gap over %.2f s (%d intervals): world "
                     "tilted by %.2f deg (sigma %.2f deg)", est.kf_t[est.k], age, len(pims),
                     res.gravity_change_deg, res.gravity_sigma_deg)
