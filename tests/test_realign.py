@@ -10,14 +10,14 @@ import re
 import numpy as np
 
 from tests.conftest import shared
-from vio.backend.health import BridgeConfig
+from vio.backend.health import RealignConfig
 from vio.backend.realign import GapRealign
 
 S = 1_000_000_000
 
 
 def test_only_a_bridge_of_realign_after_s_holds_the_next_intervals():
-    ra = GapRealign(BridgeConfig(realign_after_s=1.0), np.array([0.0, 0.0, -9.81]))
+    ra = GapRealign(RealignConfig(after_s=1.0), np.array([0.0, 0.0, -9.81]))
     t = 0
     for _ in range(3):          # a 0.6-s bridge: the IMU factor resumes at once
         assert ra.holding(True, t, t + S // 5)
@@ -33,7 +33,7 @@ def test_only_a_bridge_of_realign_after_s_holds_the_next_intervals():
 
 
 def test_realign_disabled_never_holds():
-    ra = GapRealign(BridgeConfig(realign=False, realign_after_s=0.1), np.array([0.0, 0.0, -9.81]))
+    ra = GapRealign(RealignConfig(enabled=False, after_s=0.1), np.array([0.0, 0.0, -9.81]))
     assert ra.holding(True, 0, S)
     assert not ra.holding(False, S, 2 * S) and not ra.active
 

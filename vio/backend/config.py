@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from vio.backend.gauge import GaugeConfig
-from vio.backend.health import BridgeConfig, HealthConfig
+from vio.backend.health import BridgeConfig, HealthConfig, RealignConfig
 from vio.backend.scale_refine import RefineConfig
 from vio.imu import ImuNoiseConfig
 
@@ -354,5 +354,6 @@ class BackendConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    realign: RealignConfig = field(default_factory=RealignConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     gauge: GaugeConfig = field(default_factory=GaugeConfig)

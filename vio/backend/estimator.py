@@ -124,7 +124,7 @@ class Estimator:
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
         self.refiner = ScaleRefiner(cfg.refine, np.asarray(self.params.n_gravity, float))
-        self.realign = GapRealign(cfg.bridge, np.asarray(self.params.n_gravity, float))
+        self.realign = GapRealign(cfg.realign, np.asarray(self.params.n_gravity, float))
         self.gauge = GaugeAnchor(cfg.gauge)   # position and yaw held in the window (vio.backend.gauge)
         self.carry = OutlierCarry()           # SolverConfig.outlier_update "next_frame"
 
@@ -253,7 +253,7 @@ class Estimator:
                          t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
                 self._bridge_t = None
             else:   # the IMU is back, the world may be tilted: vio.backend.realign
-                fs.append(bridge.gyro_rotation_factor(k0, k1, self.pim, bc.realign_gyro_sigma))
+                fs.append(bridge.gyro_rotation_factor(k0, k1, self.pim, self.cfg.realign.gyro_sigma))
                 self.realign.record(k0, k1, self.pim)
         else:
             fs = [graph.imu_factor(k0, k1, self.pim)]

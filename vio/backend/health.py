@@ -82,15 +82,7 @@ class BridgeConfig:
     (where PnP fails, those farther than ``pred_gate_px`` from the prediction); the
     outlier check's limit is ``outlier_scale`` times wider (:func:`outlier_limit_px`).
     (Until stop 38 the preintegrated still readings were the factor too; their gravity
-    term tied position to attitude: position sigma 0.28 m over 0.5 s, 17 m over 3 s.)
-    ``realign``: after a bridge of at least ``realign_after_s`` the motion prior stays the
-    factor for ``realign_s`` more, then gravity is re-estimated from those intervals' IMU
-    (keyframe positions with ``realign_pos_sigma_m`` of noise, accelerometer bias within
-    ``realign_accel_bias_sigma``) and the state rotated to it; a solution whose gravity
-    sigma exceeds ``realign_max_sigma_deg`` is retried at each keyframe until
-    ``realign_max_s`` (``vio.backend.realign``). Meanwhile the gyro's relative attitude
-    joins the keyframes (``bridge.gyro_rotation_factor``, gyro bias within
-    ``realign_gyro_sigma`` rad/s)."""
+    term tied position to attitude: position sigma 0.28 m over 0.5 s, 17 m over 3 s.)"""
 
     accel_density: float = 1.0
     gyro_density: float = 0.5
@@ -99,17 +91,30 @@ class BridgeConfig:
     pnp_min_inliers: int = 6
     pred_gate_px: float = 10.0
     outlier_scale: float = 2.0
-    realign: bool = True
-    realign_after_s: float = 1.0
-    realign_s: float = 0.3
-    realign_max_s: float = 2.0
-    realign_pos_sigma_m: float = 0.01
-    realign_accel_bias_sigma: float = 0.05
-    realign_max_sigma_deg: float = 2.0
-    realign_min_sigmas: float = 3.0
-    realign_apply_sigma_deg: float = 1.0
-    realign_scale_sigma: float = 0.1
-    realign_gyro_sigma: float = 0.002
+
+
+@dataclass(frozen=True)
+class RealignConfig:
+    """Gravity re-alignment after a long IMU gap (``vio.backend.realign``): after a bridge
+    of at least ``after_s`` the IMU factor is held back (motion prior, and the gyro's
+    relative attitude with the gyro bias within ``gyro_sigma`` rad/s) for ``collect_s``
+    at least; then, at each keyframe, gravity from those intervals' IMU (keyframe positions
+    with ``pos_sigma_m`` of noise, accelerometer bias within ``accel_bias_sigma`` m/s^2,
+    scale within ``scale_sigma``): a tilt within ``min_sigmas`` sigmas (sigma at most
+    ``max_sigma_deg``) resumes the IMU factors, a larger one rotates the state once its
+    sigma is at most ``apply_sigma_deg``; by ``max_s`` the IMU factors resume regardless."""
+
+    enabled: bool = True
+    after_s: float = 1.0
+    collect_s: float = 0.3
+    max_s: float = 2.0
+    pos_sigma_m: float = 0.01
+    accel_bias_sigma: float = 0.05
+    max_sigma_deg: float = 2.0
+    min_sigmas: float = 3.0
+    apply_sigma_deg: float = 1.0
+    scale_sigma: float = 0.1
+    gyro_sigma: float = 0.002
 
 
 def outlier_limit_px(est) -> float:

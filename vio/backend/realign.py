@@ -8,22 +8,22 @@ new keyframes towards gravity, against a map that drifted with the old ones. The
 check then rejects the map: 7 of the 10 landmarks at the second keyframe after the gap.
 The estimate goes blind and diverges (3.8 m ATE, two restarts).
 
-So after a bridge of at least ``BridgeConfig.realign_after_s`` (1 s), the IMU factor is
+So after a bridge of at least ``RealignConfig.after_s`` (1 s), the IMU factor is
 held back: the window keeps the motion prior between keyframes, with the gyro's relative
 attitude (:func:`vio.backend.bridge.gyro_rotation_factor`), and those intervals' IMU is
-preintegrated and kept aside. From ``realign_s`` (0.3 s) on, at each keyframe, the
+preintegrated and kept aside. From ``collect_s`` (0.3 s) on, at each keyframe, the
 inertial-only problem of :mod:`vio.backend.scale_refine` over the kept intervals (the
 window's keyframe poses held, scale held near 1) gives the gravity direction in the
 drifted world:
 
-- a tilt within ``realign_min_sigmas`` (3) sigmas, with a sigma of at most
-  ``realign_max_sigma_deg`` (2 degrees): nothing to correct, the IMU factors resume;
-- a larger tilt, once its sigma is at most ``realign_apply_sigma_deg`` (1 degree): the
+- a tilt within ``min_sigmas`` (3) sigmas, with a sigma of at most
+  ``max_sigma_deg`` (2 degrees): nothing to correct, the IMU factors resume;
+- a larger tilt, once its sigma is at most ``apply_sigma_deg`` (1 degree): the
   whole state (poses, velocities, world points, marginals) is rotated about the newest
   keyframe's camera so gravity is along -z again
   (:func:`vio.backend.regauge.apply_similarity`), and the kept intervals join the graph
   as IMU factors;
-- neither by ``realign_max_s`` (2 s): the IMU factors resume unaligned, with a warning.
+- neither by ``max_s`` (2 s): the IMU factors resume unaligned, with a warning.
 
 Measured on the real V1_01 tracks, a gap injected at 21 times from 3 to 27 s
 (``benchmarks/bench_faults.py``): 3-s gaps within 0.15 m at 18 of 21 times (12 of 21
@@ -42,7 +42,7 @@ import gtsam
 import numpy as np
 
 from vio.backend import graph
-from vio.backend.health import BridgeConfig
+from vio.backend.health import RealignConfig
 from vio.backend.regauge import Similarity, apply_similarity
 from vio.backend.scale_refine import RefineConfig, interval, solve
 
@@ -58,14 +58,14 @@ class GapRealign:
     estimator asks :meth:`holding` whether the interval it closes keeps the motion prior,
     records it (:meth:`record`), and after the update calls :meth:`step`."""
 
-    def __init__(self, cfg: BridgeConfig, gravity: np.ndarray) -> None:
+    def __init__(self, cfg: RealignConfig, gravity: np.ndarray) -> None:
         self.cfg = cfg
         self.gravity = np.asarray(gravity, float)
         self.solver_cfg = RefineConfig(
-            pos_sigma_m=cfg.realign_pos_sigma_m, accel_bias_sigma=cfg.realign_accel_bias_sigma,
-            max_scale_sigma=np.inf, max_gravity_sigma_deg=cfg.realign_max_sigma_deg,
+            pos_sigma_m=cfg.pos_sigma_m, accel_bias_sigma=cfg.accel_bias_sigma,
+            max_scale_sigma=np.inf, max_gravity_sigma_deg=cfg.max_sigma_deg,
             max_scale_change=np.inf, max_gravity_change_deg=90.0, min_intervals=2,
-            scale_prior_sigma=cfg.realign_scale_sigma)
+            scale_prior_sigma=cfg.scale_sigma)
         self.applied = 0
         self.reset()
 
@@ -88,7 +88,7 @@ class GapRealign:
             self.span_s = (t1_ns - self.span_t0) * 1e-9
             return True
         if self.t0 is None and self.span_t0 is not None:
-            if self.cfg.realign and self.span_s >= self.cfg.realign_after_s:
+            if self.cfg.enabled and self.span_s >= self.cfg.after_s:
                 self.t0 = t0_ns
             self.span_t0, self.span_s = None, 0.0
         return self.t0 is not None
@@ -102,7 +102,7 @@ class GapRealign:
         if self.t0 is None:
             return
         age = (t_ns - self.t0) * 1e-9
-        if age < self.cfg.realign_s - 1e-9:
+        if age < self.cfg.collect_s - 1e-9:
             return
         pims = [x for x in self.pims if est.values.exists(X(x[0])) and est.values.exists(X(x[1]))]
         ks = sorted({x[0] for x in pims} | {x[1] for x in pims})
@@ -116,14 +116,14 @@ class GapRealign:
                             est.values.atPose3(graph.EXTRINSIC), self.gravity, self.solver_cfg)
             except (np.linalg.LinAlgError, ValueError):
                 res = None
-        if res is not None and res.ok and res.gravity_change_deg < self.cfg.realign_min_sigmas * res.gravity_sigma_deg:
+        if res is not None and res.ok and res.gravity_change_deg < self.cfg.min_sigmas * res.gravity_sigma_deg:
             log.info("t=%d ns: gravity after the IMU gap within %.1f sigma of the window's (%.2f deg, sigma "
-                     "%.2f deg): IMU factors resume", t_ns, self.cfg.realign_min_sigmas,
+                     "%.2f deg): IMU factors resume", t_ns, self.cfg.min_sigmas,
                      res.gravity_change_deg, res.gravity_sigma_deg)
             self._resume(est, pims)
-        elif res is not None and res.ok and res.gravity_sigma_deg <= self.cfg.realign_apply_sigma_deg:
+        elif res is not None and res.ok and res.gravity_sigma_deg <= self.cfg.apply_sigma_deg:
             self._apply(est, res, pims, age)
-        elif age >= self.cfg.realign_max_s - 1e-9:
+        elif age >= self.cfg.max_s - 1e-9:
             why = ("no intervals" if res is None else res.reason if not res.ok else
                    f"tilt {res.gravity_change_deg:.2f} deg, sigma {res.gravity_sigma_deg:.2f} deg")
             log.warning("t=%d ns: gravity re-alignment after the IMU gap not determined over %.2f s (%s): "
