@@ -30,7 +30,12 @@ Measured on the real V1_01 tracks, a gap injected at 21 times from 3 to 27 s
 before), geometric mean ATE 0.146 -> 0.050 m, worst 11.8 -> 0.56 m; 0.5-s gaps 19 -> 20
 of 21 within 0.05 m. Real MH_05 mono, 3-s gaps at 11 times: mean ATE 0.097 -> 0.104 m
 (single runs there move by tens of percent). The applied tilts on V1_01 are 8-10
-degrees at the take-off; on MH_05 none is applied.
+degrees at the take-off; on MH_05 none is applied. Where vision held the tilt, the hold
+only costs: generated 60-s tracks (MH_03, MH_05, V1_02, V2_01; 3-s gaps at 10-50 s)
+geometric mean 0.0306 -> 0.0318 m, worst 0.054 -> 0.058 m, and with the re-alignment off
+the same as before. The smoother's own roll / pitch sigma at the gap's end does not tell
+the cases apart (0.87 degrees at a 7-degree error on V1_01, 0.4-0.7 where nothing
+drifted), so every gap of ``after_s`` or more is held.
 """
 
 from __future__ import annotations
