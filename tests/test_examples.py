@@ -6,7 +6,7 @@ from __future__ import annotations
 import runpy
 from pathlib import Path
 
-from vio.run import load_config
+from vio.run import default_config, load_config
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -14,6 +14,9 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 def test_example_config_loads_strictly():
     cfg = load_config(EXAMPLES / "config.yaml")
     assert cfg.backend.solver.lag_s == 2.5 and cfg.frontend.max_features == 150
+    d = default_config("features")     # the fault groups as listed are the defaults
+    assert (cfg.backend.health, cfg.backend.bridge, cfg.backend.realign) == (
+        d.backend.health, d.backend.bridge, d.backend.realign)
 
 
 def test_photometric_td_example_loads_strictly():
