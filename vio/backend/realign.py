@@ -71,7 +71,6 @@ class GapRealign:
             max_scale_sigma=np.inf, max_gravity_sigma_deg=cfg.max_sigma_deg,
             max_scale_change=np.inf, max_gravity_change_deg=90.0, min_intervals=2,
             scale_prior_sigma=cfg.scale_sigma)
-        self.applied = 0
         self.reset()
 
     def reset(self) -> None:
@@ -136,17 +135,15 @@ class GapRealign:
             self._resume(est, pims)
 
     def _apply(self, est: "Estimator", res, pims: list, age: float) -> None:
-        T = est.values.atPose3(X(est.k))
-        t_bc = est.values.atPose3(graph.EXTRINSIC).translation()
-        pivot = T.translation() + T.rotation().matrix() @ t_bc
+        T_b_c = est.values.atPose3(graph.EXTRINSIC)
+        pivot = est.values.atPose3(X(est.k)).compose(T_b_c).translation()   # the newest camera
         try:
-            apply_similarity(est, Similarity(1.0, res.R_corr, pivot, t_bc))
+            apply_similarity(est, Similarity(1.0, res.R_corr, pivot, T_b_c.translation()))
         except (RuntimeError, ValueError) as exc:   # the old smoother stays
             log.error("gravity re-alignment not applied: the rebuilt smoother failed (%s)",
                       str(exc).splitlines()[0][:120])
             self._resume(est, pims)
             return
-        self.applied += 1
         est.realigned += 1
         log.warning("t=%d ns: gravity re-aligned after the IMU gap over %.2f s (%d intervals): world "
                     "tilted by %.2f deg (sigma %.2f deg)", est.kf_t[est.k], age, len(pims),
@@ -168,4 +165,3 @@ class GapRealign:
         except RuntimeError as exc:
             log.error("IMU factors after the gap not added: the smoother refused them (%s)",
                       str(exc).splitlines()[0][:120])
-

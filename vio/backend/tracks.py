@@ -18,8 +18,7 @@ import gtsam
 import numpy as np
 
 from factors.stack import Member, stacked_factor
-from vio.backend import graph
-from vio.backend.health import outlier_limit_px
+from vio.backend import graph, health
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.motion import motion_table
@@ -345,13 +344,12 @@ class LandmarkManager:
     def outlier_removals(self, values: gtsam.Values
                          ) -> tuple[gtsam.NonlinearFactorGraph, dict, list[int], int]:
         """Factors of tracks whose worst reprojection error exceeds ``outlier_px``
-        (``health.outlier_limit_px``) or whose
-        depth left the valid range. Such a track is dropped with all its observations; the
-        front end's next observation of the same id starts it afresh (as VINS-Mono does),
-        and only an id dropped ``max_rejections`` times is ignored for good. Rejecting at
-        once starved the estimator on long tracks: a track that entered at the default depth
-        while still and failed at take-off stayed tracked but ignored, and MH_04 ran with
-        2-18 landmarks for 30 s (ATE 0.95 m; with restarts 0.18 m)."""
+        (``health.outlier_limit_px``) or whose depth left the valid range. Such a track is
+        dropped with all its observations; the front end's next observation of the id starts
+        it afresh (as VINS-Mono does); only an id dropped ``max_rejections`` times is ignored
+        for good. Rejecting at once starved the estimator on long tracks: a track that entered
+        at the default depth while still and failed at take-off stayed tracked but ignored,
+        and MH_04 ran with 2-18 landmarks for 30 s (ATE 0.95 m; with restarts 0.18 m)."""
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
@@ -365,7 +363,7 @@ class LandmarkManager:
             ok = lam > 0 and 1.0 / vc.max_depth_m <= lam <= 1.0 / vc.min_depth_m
             (checked if ok else bad).append(tr)
         worst = graph.worst_reprojection_errors(checked, values, table) * fx
-        limit = outlier_limit_px(self.est)
+        limit = health.outlier_limit_px(self.est)
         bad_ids = {tr.lid for tr in bad} | {tr.lid for tr, e in zip(checked, worst) if e > limit}
         for lid in list(self.tracks):
             tr = self.tracks[lid]
