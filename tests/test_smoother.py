@@ -256,3 +256,44 @@ def test_anchored_marginal_shifts_with_the_estimate(form):
     assert f.error(c) == pytest.approx(0.5 * np.sum((A @ dx - b) ** 2), rel=1e-9)
     other = _prior(0, [0, 0, 0], [1, 1, 1])
     assert smoother.anchored(other, lin) is other
+
+
+def test_refusal_at_a_world_point_holds_that_point_and_keeps_cholesky():
+    """Refused at a world point (``p<i>``): rebuilt with Cholesky and a prior holding that
+    point where it is (``SolverConfig.refusal_point_sigma`` times its distance from the
+    newest keyframe), so no QR window follows; the slots still name the same factors and
+    the well-determined directions are solved as QR solves them."""
+    P, X = gtsam.symbol_shorthand.P, gtsam.symbol_shorthand.X
+    ests = []
+    for fact, rel in (("CHOLESKY", 1.0), ("QR", 0.0)):
+        est = _est(fact)
+        est.cfg.solver.refusal_point_sigma = rel
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        g.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.01)))
+        g.add(_prior(P(1), [1, 1, 1], [0.5] * 3))
+        v.insert(X(0), gtsam.Pose3())
+        v.insert(P(1), np.ones(3))
+        idx = _run(est, g, v, {X(0): 0.0, P(1): 0.0})
+        est.lm.slots = {"x0": idx[0], "p1": idx[1]}
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        g.add(_ill(P(2)))
+        v.insert(P(2), np.array([2.0, 1.0, 0.0]))
+        est.kf_t[1], est.k = 1, 0
+        idx = _run(est, g, v, {P(2): 1.0})
+        est.lm.slots["p2"] = idx[0]
+        est.values = est.smoother.calculateEstimate()
+        ests.append(est)
+    chol, qr = ests
+    assert chol.smoother_factorization == "CHOLESKY" and chol.qr_resolves == 0 and chol.point_holds == 1
+    assert qr.qr_resolves == 0 and not hasattr(qr, "point_holds")
+    fg = chol.smoother.getFactors()
+    assert [list(fg.at(chol.lm.slots[n]).keys()) for n in ("x0", "p1", "p2")] == [[X(0)], [P(1)], [P(2)]]
+    # the ill prior's information is 1e5 / 1 / 1e-5 along Q's columns; the hold (sigma:
+    # 1.0 x the point's distance sqrt(5) m from keyframe 0, information 0.2) leaves the
+    # first as QR solves it, pulls the second by 0.2 / 1.2 and keeps the third in place
+    Q = gtsam.Rot3.RzRyRx(0.3, -0.5, 0.7).matrix()
+    dc, dq = Q.T @ chol.values.atVector(P(2)), Q.T @ qr.values.atVector(P(2))
+    lin = Q.T @ np.array([2.0, 1.0, 0.0])
+    assert abs(dc[0] - dq[0]) < 1e-4
+    assert dc[1] == pytest.approx((dq[1] + 0.2 * lin[1]) / 1.2, abs=1e-3)
+    assert abs(dc[2] - lin[2]) < 1e-3 and abs(dq[2] - lin[2]) > 0.5

@@ -39,6 +39,8 @@ class RunResult:
     recoveries: int = 0
     qr_resolves: int = 0
     """Updates GTSAM's Cholesky refused and QR re-solved (``vio.backend.smoother``)."""
+    point_holds: int = 0
+    """Cholesky refusals at a world point re-solved with Cholesky, that point held."""
     restarts: int = 0
     reinits: int = 0
     """Re-initializations after a divergence restart (``vio.reinit``)."""
@@ -228,6 +230,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
         res.reinits = pipe.reinit.count
         res.realigns = pipe.est.realigned
         res.qr_resolves = pipe.est.qr_resolves
+        res.point_holds = pipe.est.point_holds
         res.imu_gaps = len(pipe.imu_gaps)
         res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
         res.imu_dropped = pipe.imu_dropped
@@ -259,7 +262,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
     """Human-readable summary lines (ATE when ground truth is present)."""
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
              f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"
-             + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else ""),
+             + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else "")
+             + (f", {res.point_holds} refused update(s) re-solved holding a world point" if res.point_holds else ""),
              f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")

@@ -120,6 +120,7 @@ class Estimator:
         self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.smoother)
         self.qr_since: int | None = None
         self.qr_resolves = 0
+        self.point_holds = 0   # Cholesky refusals repaired by holding a world point (vio.backend.smoother)
         self.n_pad = 0      # padding keys in the smoother (vio.backend.padding)
         self.pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self.sources: list[FactorSource] = []
