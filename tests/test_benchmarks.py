@@ -357,3 +357,15 @@ def test_imu_gt_consistency_is_one_on_consistent_motion_and_sees_a_scaled_imu():
     t, p, acc, R, has_bias = imu_world_accel(shared("euroc_MH_01_stereo_synimu"))
     assert has_bias
     assert consistency(t, p, acc, R, 0.25, fit_bias=False)[0] == pytest.approx(1.0, abs=3e-3)
+
+
+def test_keyframe_cost_times_every_keyframe_and_restores_the_estimator():
+    import keyframe_cost
+    from vio.backend import estimator, smoother
+    add, update = estimator.Estimator.add_keyframe, smoother.update
+    rows = keyframe_cost.measure(shared("euroc_V1_01_30s_features"), "features", None)
+    assert estimator.Estimator.add_keyframe is add and smoother.update is update
+    assert len(rows) > 10
+    t, t_upd, n_vars, n_points, n_kf, home = zip(*rows)
+    assert all(0 < u <= s for s, u in zip(t, t_upd)) and all(home)
+    assert max(n_points) > 0 and max(n_kf) > 3 and all(v > p for v, p in zip(n_vars, n_points))
