@@ -311,14 +311,20 @@ class SolverConfig:
     (``vio.modes``). ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
     Householder QR (real MH_05 mono: main process CPU 6.63 -> 4.68 s, p95 per frame
     111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
-    the update is re-solved with QR (``vio.backend.smoother``), unless the refusal names
-    a world point: then with Cholesky and a prior holding that point where it is, sigma
-    ``refusal_point_sigma`` times its distance from the newest keyframe (0: always QR).
-    QR stays until the window has moved on, ~1.9x the keyframe cost: on real MH_01 mono
-    two refusals put 18 of 89 keyframes on QR (91 vs 54 ms each; per-frame p95 78 ->
-    54 ms with the hold, ATE over 7 stretches 5.95 -> 5.97 mm). A prior on every point
-    instead (``point_prior_sigma_m`` 2 or 5 m rather than 20) removes the refusals too
-    but holds the monocular scale: real MH_05 mono from 17 starts 88 -> 214 / 99 mm. ``wildfire_threshold``:
+    the update is re-solved with QR (``vio.backend.smoother``), which stays until the
+    window has moved on at ~1.9x the keyframe cost (real MH_01 mono: two refusals put 18
+    of 89 keyframes on QR, 91 vs 54 ms each, per-frame p95 78-96 ms). With
+    ``refusal_point_sigma`` > 0 a refusal that names a world point is re-solved with
+    Cholesky instead and a prior holding that point where it is (sigma: this times its
+    distance from the newest keyframe): latency first (real MH_01 mono p95 53-60 ms, ATE
+    over 7 stretches 5.95 -> 5.97 mm), but QR is the more accurate solver in the
+    ill-conditioned windows that follow a refusal, so it is off: on the 12 generated runs
+    that refused (60-s features and generator variants) 9 came out worse, geometric mean
+    x1.03, two variant rows over 0.2 % of the path (boxwall MH_03 td 12 ms 0.188 -> 0.242
+    %); the same hold with the QR window gives the QR figures to 0.3 mm, so the prior is
+    not what costs. A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
+    rather than 20) ends the refusals but holds the monocular scale: real MH_05 mono from
+    17 starts 88 -> 214 / 99 mm. ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
     time offset td (seconds), whose steps are ~1e-4. ``incremental_padding``: inert
     keys that keep iSAM2 off its batch step, which calls every Python factor again
@@ -341,7 +347,7 @@ class SolverConfig:
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
     factorization: Literal["QR", "CHOLESKY"] = "CHOLESKY"
-    refusal_point_sigma: float = 1.0
+    refusal_point_sigma: float = 0.0
     wildfire_threshold: float = 1e-6
     td_relinearize_threshold: float = 1e-4
     point_relinearize_threshold: float | None = 0.05

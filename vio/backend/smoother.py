@@ -15,14 +15,15 @@ weakly observed world point occasionally triggers on generated mid-flight tracks
 13 ``bench_midflight`` excerpts, once each). iSAM2 has then already taken the update's
 factors and values in (GTSAM ``ISAM2::update`` adds them before eliminating), so
 :func:`qr_resolve` rebuilds the smoother from that graph instead of restarting the window
-(a restart loses the window's information). Where the refusal names a world point (a
-point with almost no information in some direction: low parallax, or behind the cameras
-at some iterate, where only its 20-m prior holds it), the rebuild keeps Cholesky and adds
-a prior holding that one point where it is (``SolverConfig.refusal_point_sigma`` times
-its distance from the newest keyframe); only if Cholesky refuses again, or the variable
-is not a point, is it rebuilt with QR, and :func:`maybe_back_to_cholesky` rebuilds with
-Cholesky once the keyframes present at the refusal have left. (The QR window costs ~1.9x
-per keyframe: real MH_01 mono, 18 of 89 keyframes at 91 instead of 54 ms.)
+(a restart loses the window's information), with QR, and :func:`maybe_back_to_cholesky`
+rebuilds with Cholesky once the keyframes present at the refusal have left (the QR window
+costs ~1.9x per keyframe: real MH_01 mono, 18 of 89 keyframes at 91 instead of 54 ms).
+Opt-in for latency (``SolverConfig.refusal_point_sigma`` > 0): where the refusal names a
+world point (one with almost no information in some direction: low parallax, or behind
+the cameras at some iterate, where only its 20-m prior holds it), the rebuild keeps
+Cholesky and adds a prior holding that one point where it is; QR only if Cholesky
+refuses again or the variable is not a point. QR is the more accurate solver in the
+windows after a refusal (``SolverConfig`` has the figures), hence off by default.
 
 The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
 baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
