@@ -186,8 +186,9 @@ def _slots(g: gtsam.NonlinearFactorGraph, kept: list, remap: dict[int, int]) -> 
 def qr_resolve(est: "Estimator", g: gtsam.NonlinearFactorGraph, exc: RuntimeError) -> list[int]:
     """After ``est.smoother.update(g, ...)`` raised under Cholesky: rebuild from the graph
     iSAM2 had taken in (module docstring) and return the new slots of ``g``'s factors, in
-    ``g``'s order. Refused at a world point: with Cholesky and a prior on that point
-    (:func:`_point_prior`) if Cholesky then accepts; otherwise with QR. Re-raises ``exc``
+    ``g``'s order: with QR, or, refused at a world point with ``SolverConfig.
+    refusal_point_sigma`` > 0, with Cholesky and a prior on that point (:func:`_point_prior`)
+    if Cholesky then accepts. Re-raises ``exc``
     when this does not apply (QR already, not an indeterminate system, ``g``'s factors
     not all found) or QR refuses too."""
     if est.smoother_factorization != "CHOLESKY" or "Indeterminate" not in str(exc):
