@@ -317,12 +317,14 @@ class SolverConfig:
     ``refusal_point_sigma`` > 0 a refusal that names a world point is re-solved with
     Cholesky instead and a prior holding that point where it is (sigma: this times its
     distance from the newest keyframe): latency first (real MH_01 mono p95 53-60 ms, ATE
-    over 7 stretches 5.95 -> 5.97 mm), but QR is the more accurate solver in the
-    ill-conditioned windows that follow a refusal, so it is off: on the 12 generated runs
-    that refused (60-s features and generator variants) 9 came out worse, geometric mean
-    x1.03, two variant rows over 0.2 % of the path (boxwall MH_03 td 12 ms 0.188 -> 0.242
-    %); the same hold with the QR window gives the QR figures to 0.3 mm, so the prior is
-    not what costs. A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
+    over 7 stretches 5.95 -> 5.97 mm). Off by default: of the 9 generator variants that
+    refused, 7 came out worse with it (geometric mean of all 31 x1.028, under 0.2 % of the
+    path 25 -> 23). That is not the solver: with QR throughout (no refusal, no rebuild)
+    those runs give what the hold gives (raw-gt 0.0833 m both, loss3pct 0.0410 both),
+    and the hold followed by the QR window gives the default's figures to 0.3 mm. What
+    the default has and the others lack is the rebuild back to Cholesky after the window,
+    which relinearizes every factor at the estimate: a lead (periodic full
+    relinearization), not measured further. A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
     rather than 20) ends the refusals but holds the monocular scale: real MH_05 mono from
     17 starts 88 -> 214 / 99 mm. ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the

@@ -22,8 +22,9 @@ Opt-in for latency (``SolverConfig.refusal_point_sigma`` > 0): where the refusal
 world point (one with almost no information in some direction: low parallax, or behind
 the cameras at some iterate, where only its 20-m prior holds it), the rebuild keeps
 Cholesky and adds a prior holding that one point where it is; QR only if Cholesky
-refuses again or the variable is not a point. QR is the more accurate solver in the
-windows after a refusal (``SolverConfig`` has the figures), hence off by default.
+refuses again or the variable is not a point. Off by default: on generated runs that
+refused it reproduces what QR throughout gives, and the default's figures there are
+better, most likely through its rebuild back to Cholesky (``SolverConfig`` has them).
 
 The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
 baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
