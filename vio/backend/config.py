@@ -321,10 +321,10 @@ class SolverConfig:
     refused, 7 came out worse with it (geometric mean of all 31 x1.028, under 0.2 % of the
     path 25 -> 23). That is not the solver: with QR throughout (no refusal, no rebuild)
     those runs give what the hold gives (raw-gt 0.0833 m both, loss3pct 0.0410 both),
-    and the hold followed by the QR window gives the default's figures to 0.3 mm. What
-    the default has and the others lack is the rebuild back to Cholesky after the window,
-    which relinearizes every factor at the estimate: a lead (periodic full
-    relinearization), not measured further. A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
+    and the hold followed by the QR window gives the default's figures to 0.3 mm: what
+    differs is the default's second rebuild (back to Cholesky after the window), and
+    rebuilds are not neutral (``vio.backend.smoother``: one rebuild of the smoother
+    takes real MH_05 mono from 0.067 to 0.54 m). A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
     rather than 20) ends the refusals but holds the monocular scale: real MH_05 mono from
     17 starts 88 -> 214 / 99 mm. ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the

@@ -24,7 +24,18 @@ the cameras at some iterate, where only its 20-m prior holds it), the rebuild ke
 Cholesky and adds a prior holding that one point where it is; QR only if Cholesky
 refuses again or the variable is not a point. Off by default: on generated runs that
 refused it reproduces what QR throughout gives, and the default's figures there are
-better, most likely through its rebuild back to Cholesky (``SolverConfig`` has them).
+better, through its second rebuild (``SolverConfig`` has them).
+
+A rebuild is not neutral. The estimate does not move when one is installed, but the
+following updates drift; the likely cause: the rebuilt smoother relinearizes the keys of
+the old marginal factors, which the old one held fixed at their linearization point, so
+the marginals and the factors still on those keys are no longer linearized at the same
+point (the consistency that first-estimate Jacobians keep). Not yet confirmed. Measured by rebuilding at a fixed period (not a mode of the pipeline):
+real MH_05 mono from frame 0, one rebuild at ~8.5 s, 0.0665 -> 0.537 m (scale -12.5 %);
+every 2.5 s, 7 starts, mean 81 -> 342 mm; real V1_01 features every 2.5 s 0.0241 ->
+0.0258 m. Every rebuild (QR re-solve, back to Cholesky, re-gauging, re-alignment) pays
+this; keeping those keys fixed needs ISAM2's ``noRelinKeys``, which the fixed-lag
+smoother's Python update does not take.
 
 The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
 baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
