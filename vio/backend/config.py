@@ -324,7 +324,8 @@ class SolverConfig:
     and the hold followed by the QR window gives the default's figures to 0.3 mm: what
     differs is the default's second rebuild (back to Cholesky after the window), and
     rebuilds are not neutral (``vio.backend.smoother``: one rebuild of the smoother
-    takes real MH_05 mono from 0.067 to 0.54 m; cause not found). A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
+    takes real MH_05 mono from 0.067 to 0.54 m: it relinearizes the points iSAM2 held
+    fixed). A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
     rather than 20) ends the refusals but holds the monocular scale: real MH_05 mono from
     17 starts 88 -> 214 / 99 mm. ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
