@@ -77,8 +77,9 @@ def main() -> None:
           f"updates {1e3 * R[:, 1].mean():.1f} ms; window {R[:, 2].mean():.0f} variables, "
           f"{R[:, 3].mean():.0f} world points, {R[:, 4].mean():.1f} keyframes")
     home = R[:, 5] == 1
-    print(f"configured factorization: {home.sum()} keyframes, mean {ms[home].mean() if home.any() else 0:.1f} ms; "
-          f"QR after a refusal: {(~home).sum()} keyframes, mean {ms[~home].mean() if (~home).any() else 0:.1f} ms")
+    mean = [ms[m].mean() if m.any() else 0.0 for m in (home, ~home)]
+    print(f"configured factorization: {home.sum()} keyframes, mean {mean[0]:.1f} ms; "
+          f"QR after a refusal: {(~home).sum()} keyframes, mean {mean[1]:.1f} ms")
     if a.per_keyframe:
         for i, (r, m) in enumerate(zip(R, ms)):
             print(f"{i + 5:4d} {m:7.1f} ms  update {1e3 * r[1]:6.1f} ms  {int(r[2]):4d} variables  "

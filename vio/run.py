@@ -263,7 +263,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
              f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"
              + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else "")
-             + (f", {res.point_holds} refused update(s) re-solved holding a world point" if res.point_holds else ""),
+             + (f", {res.point_holds} refused update(s) re-solved holding a world point"
+                if res.point_holds else ""),
              f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")

@@ -203,9 +203,9 @@ class PointTracks:
     def outlier_removals(self, values: gtsam.Values, g: gtsam.NonlinearFactorGraph, stamps: dict,
                          removals: list[int]) -> list[int]:
         """Ids of points whose reprojection error in their main factor exceeds
-        ``outlier_px`` (``health.outlier_limit_px``; observations moved by the current td) or that leave the depth
-        range: the factor is removed and a weak prior keeps the key determined until the
-        smoother marginalizes it."""
+        ``outlier_px`` (``health.outlier_limit_px``; observations moved by the current td)
+        or that leave the depth range: the factor is removed and a weak prior keeps the key
+        determined until the smoother marginalizes it."""
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         td = float(values.atVector(graph.TD)[0]) if vc.use_td and values.exists(graph.TD) else 0.0

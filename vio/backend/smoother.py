@@ -26,22 +26,23 @@ refuses again or the variable is not a point. Off by default: on generated runs 
 refused it reproduces what QR throughout gives, and the default's figures there are
 better, through its second rebuild (``SolverConfig`` has them).
 
-A rebuild is not neutral. The estimate and its marginal covariances do not change when
-one is installed, but the following updates drift. iSAM2 holds every key of a marginal
-factor fixed at its linearization point (``marginalizeLeaves``), and in a window of world
-points that is every point a leaving keyframe saw: their later observations are
+A rebuild is not neutral. Measured by rebuilding at a fixed period (a patch, not a mode
+of the pipeline): real MH_05 mono from frame 0, one rebuild at ~8.5 s, 0.0665 -> 0.537 m
+(scale -12.5 %); every 2.5 s, 7 starts, mean 81 -> 342 mm; real V1_01 features every
+2.5 s 0.0241 -> 0.0258 m; real MH_01 stereo and close-range MH_01 mono unchanged (5.9 ->
+6.0, 6.1 -> 6.1 mm). The estimate and its marginal covariances do not change when the
+rebuilt smoother is installed; the following updates drift. iSAM2 holds every key of a
+marginal factor fixed at its linearization point (``marginalizeLeaves``), and in a window
+of world points that is every point a leaving keyframe saw: their later observations are
 linearized there too. The rebuilt smoother relinearizes them. Freezing the factors
 present at the rebuild (each a ``LinearContainerFactor`` at the old point) does not help
-(0.486 m in the first measurement below), but not relinearizing points after the
-rebuild does (0.537 -> 0.062 m), so the later observations are what matters. Never
-relinearizing points at all is no general fix (real MH_05 mono 17 starts 87.9 -> 93.9
-mm, V1_01 0.0241 -> 0.0256 m): a rebuild should keep exactly the old fixed keys fixed,
-which the Python API cannot say per key (a fix: give them their own key character). Measured by rebuilding at a fixed period (not a mode of the pipeline):
-real MH_05 mono from frame 0, one rebuild at ~8.5 s, 0.0665 -> 0.537 m (scale -12.5 %);
-every 2.5 s, 7 starts, mean 81 -> 342 mm; real V1_01 features every 2.5 s 0.0241 ->
-0.0258 m; real MH_01 stereo and close-range MH_01 mono unchanged (5.9 -> 6.0, 6.1 ->
-6.1 mm). Every rebuild (QR re-solve, back to Cholesky, re-gauging, re-alignment) pays
-this where the scale is weakly determined.
+(one rebuild: 0.486 m), but not relinearizing points after the rebuild does (0.537 ->
+0.062 m), so the later observations are what matters. Never relinearizing points at all
+is no general fix (real MH_05 mono 17 starts 87.9 -> 93.9 mm, V1_01 0.0241 -> 0.0256 m):
+a rebuild should keep exactly the old fixed keys fixed, which the Python API cannot say
+per key (a way: give them a key character of their own). Every rebuild (QR re-solve,
+back to Cholesky, re-gauging, re-alignment) pays this where the scale is weakly
+determined.
 
 The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
 baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
@@ -175,7 +176,8 @@ def _point_prior(est: "Estimator", var: str) -> gtsam.NonlinearFactor | None:
     """A prior holding the refused world point ``var`` ("p<index>") where it is, with
     sigma ``SolverConfig.refusal_point_sigma`` times its distance from the newest
     keyframe (module docstring); None for other variables or when that is off."""
-    rel = getattr(getattr(getattr(est, "cfg", None), "solver", None), "refusal_point_sigma", 0.0)
+    solver = getattr(est.cfg, "solver", None)   # None in the benchmark's baseline: always QR
+    rel = getattr(solver, "refusal_point_sigma", 0.0)
     if not rel or var[:1] != "p" or not var[1:].isdigit():
         return None
     key = gtsam.Symbol("p", int(var[1:])).key()
