@@ -317,17 +317,18 @@ class SolverConfig:
     ``refusal_point_sigma`` > 0 a refusal that names a world point is re-solved with
     Cholesky instead and a prior holding that point where it is (sigma: this times its
     distance from the newest keyframe): latency first (real MH_01 mono p95 53-60 ms, ATE
-    over 7 stretches 5.95 -> 5.97 mm). Off by default: of the 9 generator variants that
-    refused, 7 came out worse with it (geometric mean of all 31 x1.028, under 0.2 % of the
-    path 25 -> 23). That is not the solver: with QR throughout (no refusal, no rebuild)
-    those runs give what the hold gives (raw-gt 0.0833 m both, loss3pct 0.0410 both),
-    and the hold followed by the QR window gives the default's figures to 0.3 mm: what
-    differs is the default's second rebuild (back to Cholesky after the window), and
-    rebuilds are not neutral (``vio.backend.smoother``: one rebuild of the smoother
-    takes real MH_05 mono from 0.067 to 0.54 m: it relinearizes the points iSAM2 held
-    fixed). A prior on every point instead (``point_prior_sigma_m`` 2 or 5 m
-    rather than 20) ends the refusals but holds the monocular scale: real MH_05 mono from
-    17 starts 88 -> 214 / 99 mm. ``wildfire_threshold``:
+    over 7 stretches 5.95 -> 5.97 mm). Off by default: with QR throughout (no refusal,
+    no rebuild) the generator variants that refused give what the hold gives to within
+    a few rows (raw-gt 0.0833 m both, loss3pct 0.0410 both), and so does the default
+    since rebuilds are neutral (``vio.backend.smoother``: the keys iSAM2 held fixed stay
+    fixed). Against that default the hold moves 3 of the 31 variants (boxwall MH_03 td
+    12 ms 0.253 -> 0.242 %, raw-gt-nearest td 12 ms 0.184 -> 0.225 %; under 0.2 % 24 ->
+    23). (Before rebuilds were neutral the default's return to Cholesky relinearized the
+    fixed points, which happened to help those runs: 25 under 0.2 %; one such rebuild
+    takes real MH_05 mono from 0.067 to 0.54 m.) A prior on every point instead
+    (``point_prior_sigma_m`` 2 or 5 m rather than 20) ends the refusals but holds the
+    monocular scale: real MH_05 mono from 17 starts 88 -> 214 / 99 mm.
+    ``wildfire_threshold``:
     iSAM2 stops propagating updates smaller than this; GTSAM's default 1e-3 freezes the
     time offset td (seconds), whose steps are ~1e-4. ``incremental_padding``: inert
     keys that keep iSAM2 off its batch step, which calls every Python factor again

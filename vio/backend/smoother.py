@@ -24,25 +24,21 @@ the cameras at some iterate, where only its 20-m prior holds it), the rebuild ke
 Cholesky and adds a prior holding that one point where it is; QR only if Cholesky
 refuses again or the variable is not a point. Off by default: on generated runs that
 refused it reproduces what QR throughout gives, and the default's figures there are
-better, through its second rebuild (``SolverConfig`` has them).
+better, through its second rebuild (``SolverConfig`` has them; measured while rebuilds
+still relinearized the fixed keys, below).
 
-A rebuild is not neutral. Measured by rebuilding at a fixed period (a patch, not a mode
-of the pipeline): real MH_05 mono from frame 0, one rebuild at ~8.5 s, 0.0665 -> 0.537 m
-(scale -12.5 %); every 2.5 s, 7 starts, mean 81 -> 342 mm; real V1_01 features every
-2.5 s 0.0241 -> 0.0258 m; real MH_01 stereo and close-range MH_01 mono unchanged (5.9 ->
-6.0, 6.1 -> 6.1 mm). The estimate and its marginal covariances do not change when the
-rebuilt smoother is installed; the following updates drift. iSAM2 holds every key of a
-marginal factor fixed at its linearization point (``marginalizeLeaves``), and in a window
-of world points that is every point a leaving keyframe saw: their later observations are
-linearized there too. The rebuilt smoother relinearizes them. Freezing the factors
-present at the rebuild (each a ``LinearContainerFactor`` at the old point) does not help
-(one rebuild: 0.486 m), but not relinearizing points after the rebuild does (0.537 ->
-0.062 m), so the later observations are what matters. Never relinearizing points at all
-is no general fix (real MH_05 mono 17 starts 87.9 -> 93.9 mm, V1_01 0.0241 -> 0.0256 m):
-a rebuild should keep exactly the old fixed keys fixed, which the Python API cannot say
-per key (a way: give them a key character of their own). Every rebuild (QR re-solve,
-back to Cholesky, re-gauging, re-alignment) pays this where the scale is weakly
-determined.
+A rebuild is neutral: the chain of ``tests/test_smoother.py`` rebuilt twice ends within
+1e-9 of the smoother never rebuilt. Two things make it so. Marginal factors carry their
+linearization point (:func:`anchored`). And the keys iSAM2 held fixed stay fixed
+(:func:`_fixing_factors`): ``marginalizeLeaves`` fixes every key of a marginal it makes,
+in a window of world points every point a leaving keyframe saw, so their later
+observations are linearized at that point too; a fresh smoother would relinearize them.
+Until the fixed keys were carried over (measured by rebuilding at a fixed period, a patch,
+not a mode of the pipeline): real MH_05 mono from frame 0, one rebuild at ~8.5 s, 0.0665
+-> 0.537 m (scale -12.5 %), every 2.5 s from 7 starts mean 81 -> 342 mm, real V1_01
+features every 2.5 s 0.0241 -> 0.0258 m; with them 0.0665 m, 80.9 mm and 0.0241 m, as
+without a rebuild. (Not relinearizing points at all after a rebuild gave 0.062 m there, but is no
+general fix: 17 starts 87.9 -> 93.9 mm, V1_01 0.0241 -> 0.0256 m.)
 
 The estimator (``vio.backend.estimator.Estimator``, or the benchmark's GTSAM-native
 baseline) provides ``smoother``, ``values``, ``_new_smoother(factorization)``,
@@ -66,6 +62,38 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+FIX_CHR = "w"   # key character of the 1-d stand-ins that carry fixed keys over a rebuild
+
+
+def _void(f: gtsam.NonlinearFactor) -> bool:
+    """Whether ``f`` is a marginal without information: what a stand-in of
+    :func:`_fixing_factors` leaves, dropped at the next rebuild (which fixes the key anew)."""
+    return isinstance(f, gtsam.LinearContainerFactor) and not np.any(f.factor().augmentedInformation())
+
+
+def _fixing_factors(old: gtsam.IncrementalFixedLagSmoother, lin: gtsam.Values, stamps: dict
+                    ) -> tuple[list, gtsam.Values, dict[int, float]]:
+    """What makes a new smoother keep ``old``'s fixed keys fixed (module docstring).
+
+    iSAM2 fixes every key of a marginal factor it creates (``marginalizeLeaves``), and that
+    is the only way to fix a key from Python. So for each fixed key k: a stand-in variable
+    w_i (1-d, value 0) and a linear factor [1 | 0] on (w_i, k) with no information on k,
+    stamped older than the window so that the rebuild's own update marginalizes w_i at
+    once: the marginal it leaves on k (no rows) marks k fixed. Returns (factors, stand-in
+    values, stand-in timestamps)."""
+    fixed = [int(k) for k in old.getISAM2().getFixedVariables() if lin.exists(int(k))]
+    t_old = min(stamps.values(), default=0.0) - 10.0 * max(old.smootherLag(), 1.0)
+    facs, vals, st = [], gtsam.Values(), {}
+    unit = gtsam.noiseModel.Unit.Create(1)
+    for i, k in enumerate(fixed):
+        w = gtsam.Symbol(FIX_CHR, i).key()
+        dim = lin.extract([k]).dim()
+        jf = gtsam.JacobianFactor(w, np.eye(1), k, np.zeros((1, dim)), np.zeros(1), unit)
+        facs.append(gtsam.LinearContainerFactor(jf))
+        vals.insert(w, np.zeros(1))
+        st[w] = t_old
+    return facs, vals, st
+
 
 def _threshold_map(general: float, td: float, extra: dict[str, int] | None = None,
                    point: float | None = None) -> gtsam.ISAM2ThresholdMap:
@@ -73,7 +101,7 @@ def _threshold_map(general: float, td: float, extra: dict[str, int] | None = Non
     step and would never cross the general threshold; world points (m) at ``point``
     (None: the general one)."""
     m = gtsam.ISAM2ThresholdMap()
-    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, "z": 1, **(extra or {})}
+    dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, "z": 1, FIX_CHR: 1, **(extra or {})}
     for ch, dim in dims.items():
         m.insert((ch, np.full(dim, point if ch == "p" and point is not None else general)))
     m.insert(("d", np.array([td])))
@@ -144,15 +172,20 @@ def rebuilt(est: "Estimator", values: gtsam.Values | None = None,
     g, kept = gtsam.NonlinearFactorGraph(), []
     for j in range(fg.size()):
         f = fg.at(j)
-        if f is None:
+        if f is None or _void(f):
             continue
         kept.append((j, f))
         f = anchored(f, lin)
         g.add(f if convert is None else convert(f, lin))
     for f in extra:             # after the kept factors: their slots are not remapped
         g.add(f)
+    theta = gtsam.Values(lin if values is None else values)
+    fix, wv, wst = _fixing_factors(old, lin, stamps)
+    for f in fix:
+        g.add(f)
+    theta.insert(wv)
     new = est._new_smoother(factorization or est.smoother_factorization)
-    update(new, g, lin if values is None else values, stamps)
+    update(new, g, theta, {**stamps, **wst})
     idx = list(new.getISAM2Result().getNewFactorsIndices())
     return new, {j: int(i) for (j, _), i in zip(kept, idx)}, kept
 
