@@ -317,3 +317,8 @@ def _shutdown(proc: subprocess.Popen) -> None:
 
 if __name__ == "__main__":
     worker_main()
+    # Every answer is flushed (``_send``) and nothing else is held: skip the interpreter's
+    # teardown (numba, OpenCV, the stage's threads), which ``_shutdown`` waits for at the
+    # end of every run (real MH_05 mono: 0.31 s of the run's wall time).
+    sys.stderr.flush()
+    os._exit(0)
