@@ -142,6 +142,28 @@ def test_back_to_cholesky_once_the_window_moved_on():
     assert [fg.at(est.lm.slots[n]).keys() for n in ("p0", "b01", "p1", "q2")] == [[0], [0, 1], [1], [2]]
 
 
+def test_back_to_cholesky_once_the_refused_variable_left():
+    """The refusal's variable gone from the window ends the QR window early (real MH_01
+    mono: the refused world point had left by the next keyframe, 18 keyframes on QR -> 0);
+    while it is there, or when the refusal named none, the window rule holds."""
+    assert smoother._refused_key("p187") == gtsam.Symbol("p", 187).key()
+    assert smoother._refused_key("?") is None and smoother._refused_key("2") is None
+    est = _est("CHOLESKY")
+    _first(est)
+    _second(est)
+    est.qr_key = 2                                   # still in the window
+    smoother.maybe_back_to_cholesky(est)
+    assert est.smoother_factorization == "QR"
+    g = gtsam.NonlinearFactorGraph()                 # the ill-conditioned prior replaced
+    g.add(_prior(2, [2, 1.5, -0.4], [0.1] * 3))
+    est.smoother.update(g, gtsam.Values(), {}, [est.lm.slots.pop("p2")])
+    smoother.maybe_back_to_cholesky(est)
+    assert est.smoother_factorization == "QR"         # keyframe 2 of the refusal still there
+    est.qr_key = gtsam.Symbol("p", 187).key()        # not in the window (any more)
+    smoother.maybe_back_to_cholesky(est)
+    assert est.smoother_factorization == "CHOLESKY" and est.qr_since is None
+
+
 def test_not_a_refusal_is_reraised():
     est = _est("QR")
     with pytest.raises(RuntimeError, match="boom"):

@@ -311,9 +311,11 @@ class SolverConfig:
     (``vio.modes``). ``factorization``: CHOLESKY eliminates ~1.4x faster than dense
     Householder QR (real MH_05 mono: main process CPU 6.63 -> 4.68 s, p95 per frame
     111 -> 65 ms, same ATE); when GTSAM's Cholesky refuses an ill-conditioned clique
-    the update is re-solved with QR (``vio.backend.smoother``), which stays until the
-    window has moved on at ~1.9x the keyframe cost (real MH_01 mono: two refusals put 18
-    of 89 keyframes on QR, 91 vs 54 ms each, per-frame p95 78-96 ms). With
+    the update is re-solved with QR (``vio.backend.smoother``), which stays at ~1.9x the
+    keyframe cost until the refused variable has left the window (else the keyframes of
+    that moment: real MH_01 mono, two refusals put 18 of 89 keyframes on QR, 91 vs 54 ms
+    each, per-frame p95 78-96 ms; their world points gone by the next keyframe, none
+    now, p95 61-65 ms). With
     ``refusal_point_sigma`` > 0 a refusal that names a world point is re-solved with
     Cholesky instead and a prior holding that point where it is (sigma: this times its
     distance from the newest keyframe): latency first (real MH_01 mono p95 53-60 ms, ATE

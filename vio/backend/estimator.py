@@ -119,6 +119,7 @@ class Estimator:
         self.smoother: gtsam.IncrementalFixedLagSmoother | None = None
         self.smoother_factorization = cfg.solver.factorization   # QR after a re-solve (vio.backend.smoother)
         self.qr_since: int | None = None
+        self.qr_key: int | None = None  # the variable of that refusal (vio.backend.smoother)
         self.qr_resolves = 0
         self.point_holds = 0   # Cholesky refusals repaired by holding a world point (vio.backend.smoother)
         self.n_pad = 0      # padding keys in the smoother (vio.backend.padding)

@@ -16,8 +16,13 @@ weakly observed world point occasionally triggers on generated mid-flight tracks
 factors and values in (GTSAM ``ISAM2::update`` adds them before eliminating), so
 :func:`qr_resolve` rebuilds the smoother from that graph instead of restarting the window
 (a restart loses the window's information), with QR, and :func:`maybe_back_to_cholesky`
-rebuilds with Cholesky once the keyframes present at the refusal have left (the QR window
-costs ~1.9x per keyframe: real MH_01 mono, 18 of 89 keyframes at 91 instead of 54 ms).
+rebuilds with Cholesky once the variable GTSAM named has left the window, else once the
+keyframes present at the refusal have (the QR window costs ~1.9x per keyframe). Real
+MH_01 mono refuses twice, at world points that are gone by the next keyframe: 18 of 89
+keyframes were on QR at 91 instead of 54 ms, now none (``keyframe_cost.py``: mean / p90
+59.5 / 99.5 -> 49.3 / 57.9 ms; 7 stretches per-frame p95 at the refusing starts 78-96 ->
+61-65 ms, ATE the same bits, and the 31 generator variants and 16 mid-flight starts of
+seed 7 the same bits: rebuilds are neutral, below).
 Opt-in for latency (``SolverConfig.refusal_point_sigma`` > 0): where the refusal names a
 world point (one with almost no information in some direction: low parallax, or behind
 the cameras at some iterate, where only its 20-m prior holds it), the rebuild keeps
@@ -205,6 +210,13 @@ def _refused_variable(exc: RuntimeError) -> str:
     return str(exc).split("(Symbol: ")[-1].split(")")[0] if "(Symbol: " in str(exc) else "?"
 
 
+def _refused_key(var: str) -> int | None:
+    """The key of ``var`` as :func:`_refused_variable` names it ("p187"), None if unnamed."""
+    if len(var) < 2 or not var[0].isalpha() or not var[1:].isdigit():
+        return None
+    return gtsam.Symbol(var[0], int(var[1:])).key()
+
+
 def _point_prior(est: "Estimator", var: str) -> gtsam.NonlinearFactor | None:
     """A prior holding the refused world point ``var`` ("p<index>") where it is, with
     sigma ``SolverConfig.refusal_point_sigma`` times its distance from the newest
@@ -269,25 +281,29 @@ def qr_resolve(est: "Estimator", g: gtsam.NonlinearFactorGraph, exc: RuntimeErro
     if slots is None:
         raise exc
     install(est, new, remap, "QR")
-    est.qr_since = est.kf_t.get(est.k)
+    est.qr_since, est.qr_key = est.kf_t.get(est.k), _refused_key(var)
     est.qr_resolves += 1
     log.warning("keyframe %d: Cholesky refused the update (near variable %s); re-solved with QR "
-                "(re-solve #%d), QR until the window has moved on", est.k, var, est.qr_resolves)
+                "(re-solve #%d), QR until %s has left the window", est.k, var, est.qr_resolves,
+                var if est.qr_key is not None else "that keyframe")
     return slots
 
 
 def maybe_back_to_cholesky(est: "Estimator") -> None:
-    """After a QR re-solve: once every keyframe of that moment has left the window,
-    rebuild with Cholesky (kept on QR if Cholesky refuses)."""
+    """After a QR re-solve: once the variable GTSAM named has left the window, or else
+    every keyframe of that moment, rebuild with Cholesky (rebuilds are neutral: only the
+    solver changes); if Cholesky refuses, QR until the keyframes present then have left."""
     t0 = est.qr_since
     if est.smoother_factorization == est.home_factorization or t0 is None:
         return
-    if min(est.kf_t.values(), default=t0) <= t0:
+    key = getattr(est, "qr_key", None)
+    gone = key is not None and not est.smoother.getLinearizationPoint().exists(key)
+    if not gone and min(est.kf_t.values(), default=t0) <= t0:
         return
     try:
         new, remap, _ = rebuilt(est, factorization=est.home_factorization)
     except RuntimeError:
-        est.qr_since = est.kf_t.get(est.k)
+        est.qr_since, est.qr_key = est.kf_t.get(est.k), None
         return
     install(est, new, remap, est.home_factorization)
     est.qr_since = None
