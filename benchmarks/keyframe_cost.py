@@ -24,6 +24,7 @@ from vio.threads import one_blas_thread  # noqa: E402
 
 one_blas_thread()   # before numpy loads (vio.threads)
 
+import gtsam  # noqa: E402
 import numpy as np  # noqa: E402
 
 from vio.backend import estimator as est_mod, smoother  # noqa: E402
@@ -47,7 +48,7 @@ def measure(data: Path, mode: str, config: Path | None) -> list[tuple]:
         t = time.perf_counter()
         out = add(self, *a, **k)
         keys = list(self.values.keys())
-        n_p = sum(1 for key in keys if chr((key >> 56) & 0xFF) == "p")
+        n_p = sum(1 for key in keys if gtsam.Symbol(key).chr() == ord("p"))
         rows.append((time.perf_counter() - t, sum(upd), len(keys), n_p, len(self.kf_t),
                      self.smoother_factorization == self.home_factorization))
         return out

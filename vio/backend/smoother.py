@@ -295,7 +295,7 @@ def maybe_back_to_cholesky(est: "Estimator") -> None:
     t0 = est.qr_since
     if est.smoother_factorization == est.home_factorization or t0 is None:
         return
-    key = getattr(est, "qr_key", None)
+    key = est.qr_key   # set with qr_since by qr_resolve
     gone = key is not None and not est.smoother.getLinearizationPoint().exists(key)
     if not gone and min(est.kf_t.values(), default=t0) <= t0:
         return

@@ -36,7 +36,8 @@ prior on the newest keyframe's velocity at ``s v`` (isotropic sigma ``|v|`` time
 batch's relative scale sigma), which the smoother's own factors then spread over the
 window: no rebuild (when this was chosen each rebuild perturbed the smoother: an identity
 similarity applied once at 5 s moved generated MH_04@40 from 0.133 to 0.102 m and real
-MH_05 from 0.130 to 0.212 m; rebuilds are neutral now, ``vio.backend.smoother``). The batch used the smoother's data, so this counts the scale information twice;
+MH_05 from 0.130 to 0.212 m; rebuilds are neutral now, ``vio.backend.smoother``). The
+batch used the smoother's data, so this counts the scale information twice;
 measured, it keeps the generated mid-flight excerpts within 0.2% of the path
 (``RefineConfig``). Or (``"similarity"``) the correction
 ``c -> c_N + s R (c - c_N)`` about the newest camera centre ``c_N``
