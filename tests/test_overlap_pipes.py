@@ -23,6 +23,26 @@ def test_replies_arriving_together_are_all_received():
 
 
 
+def test_first_packets_are_sent_before_overlapped_returns():
+    """``prime``: the first packets go to the worker when ``overlapped`` is called, so it
+    tracks them while the caller starts up (``vio.run``: the pipeline loads its kernels);
+    afterwards at most ``depth`` are in flight again, and every result comes in order."""
+    pulled = []
+
+    def source():
+        for i in range(20):
+            pulled.append(i)
+            yield SimpleNamespace(index=i)
+
+    it = overlapped(operator.attrgetter, ("index",), source(), depth=3, prime=8, timeout_s=10.0)
+    assert len(pulled) == 8
+    time.sleep(0.5)                      # the caller's start-up: the worker answers meanwhile
+    assert next(it) == 0 and len(pulled) == 8   # 7 still in flight, above depth: none sent
+    assert list(it) == list(range(1, 20))
+    it = overlapped(operator.attrgetter, ("index",), iter(()), depth=3, prime=8, timeout_s=10.0)
+    assert list(it) == []
+
+
 def test_worker_error_after_it_exits_is_reported_not_a_broken_pipe():
     """The worker stops at its first error; the parent, still sending packets ahead,
     used to die on ``BrokenPipeError`` (a traceback, the worker's message lost: a

@@ -163,6 +163,17 @@ def _preload(name: str) -> None:
             print(f"vio.overlap: {name}.warm_up failed: {exc}", file=sys.stderr)
 
 
+def _widen_pipe(fd: int, size: int = 1 << 20) -> None:
+    """Let the results pipe hold ``size`` bytes (Linux ``F_SETPIPE_SZ``; elsewhere, or
+    above ``/proc/sys/fs/pipe-max-size``, it keeps its 64 KB): a mono frame's answer is
+    ~10 KB, so 64 KB let the worker run only ~6 frames ahead of a parent still starting up."""
+    try:
+        import fcntl
+        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
+    except (ImportError, OSError):
+        pass
+
+
 def worker_main() -> None:
     """Worker loop: read (factory, args[, nice]), then packets until None; answer each with
     ("ok", packet) or ("error", (exception, traceback)) and stop at the first error.
@@ -172,6 +183,7 @@ def worker_main() -> None:
     7.1 s), hybrid 1.8 -> 1.9x, mono unchanged (its backend bounds it); same output.
     A stage with ``submit`` runs pipelined (``_pipelined``)."""
     out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    _widen_pipe(out.fileno())
     sys.stdout = sys.stderr          # stray prints must not corrupt the protocol
     inp = sys.stdin.buffer
     try:
@@ -248,7 +260,7 @@ def _pipelined(submit: Callable[[Any], Future], ready: "queue.Queue", out: IO[by
 
 def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
                packets: Iterable[Any], depth: int = 16,
-               timeout_s: float = 120.0, nice: int = 0) -> Iterator[Any]:
+               timeout_s: float = 120.0, nice: int = 0, prime: int = 0) -> Iterator[Any]:
     """Yield ``factory(*args)(pkt)`` for every packet, computed in a worker process.
 
     ``factory`` (an importable callable) and ``args`` must be picklable, as packets
@@ -257,15 +269,27 @@ def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
     MH_01 hybrid took 16.7 instead of 16.3 s); ``timeout_s`` is the longest wait for one
     result. ``nice`` (0-19) lowers the worker's scheduling priority, so that on a busy
     machine the consumer of its results runs first and the worker takes the idle time.
+    The first ``max(prime, depth)`` packets are sent before this returns, so the worker
+    tracks them while the caller finishes its own start-up (``vio.run.run_dataset``).
     """
+    gen = _overlapped(factory, args, packets, depth, timeout_s, nice, max(prime, depth))
+    next(gen)            # runs to the first send: the worker is busy from here on
+    return gen
+
+
+def _overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple, packets: Iterable[Any],
+                depth: int, timeout_s: float, nice: int, first: int) -> Iterator[Any]:
+    """:func:`overlapped`'s generator: yields None once the first ``first`` packets are
+    sent, then the results."""
     proc = _PRESTARTED.pop() if _PRESTARTED else _worker_process()
     pending: deque[int] = deque()
     source = iter(packets)
     try:
         _send(proc.stdin, (factory, args, nice))
         done = stopped = False
+        primed = False
         while True:
-            while not done and len(pending) < depth:
+            while not done and len(pending) < (depth if primed else first):
                 pkt = next(source, None)
                 if pkt is None:
                     done = True
@@ -276,6 +300,9 @@ def overlapped(factory: Callable[..., Callable[[Any], Any]], args: tuple,
                     done = stopped = True
                     break
                 pending.append(pkt.index)
+            if not primed:
+                primed = True
+                yield None
             if not pending:
                 if stopped:
                     raise WorkerError(f"front-end worker stopped early (exit code {proc.wait(5.0)})")
