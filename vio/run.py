@@ -189,7 +189,8 @@ def _early_stream(data: EurocDataset, cfg: PipelineConfig, mode: str,
                   stamps: np.ndarray) -> tuple[Iterator[FramePacket], Callable | None] | None:
     """The packet stream of a KLT-worker mode without td feedback (mono, stereo), started
     before the pipeline exists so that the worker tracks while it loads; None otherwise."""
-    if cfg.live or mode not in ("mono", "stereo") or not (cfg.frontend.worker_process and overlap.SUPPORTED):
+    klt_only = mode in KLT_WORKER_MODES and mode not in PHOTOMETRIC_MODES
+    if cfg.live or not klt_only or not (cfg.frontend.worker_process and overlap.SUPPORTED):
         return None
     return _packet_stream(data, cfg, mode, stamps, None)
 
