@@ -93,14 +93,6 @@ MODE_DEFAULTS["mono"]["backend"]["solver"] = {"outlier_update": "next_frame"}
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
 MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}, "solver": dict(_PHOTOMETRIC_SOLVER),
                                        "keyframe": {"min_parallax_px": 40.0}}}
-
-
-def merged(base: dict, over: dict) -> dict:
-    """``over`` laid onto ``base`` key by key (nested mappings merged, not replaced)."""
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 # mono: the IMU biases walk at 8x the datasheet instead of 15x (vio.imu.ImuNoiseConfig). A mono
 # estimate's scale rests on the accelerometer alone, and the looser walk let its bias absorb
 # scale: real MH_05 mono (real IMU) from 17 starts (bench_stretches.py --starts 0,10,...,160)
@@ -121,3 +113,11 @@ MODE_DEFAULTS["mono"]["backend"]["imu"] = {"scale_walk": 8.0}
 # 9.8 (2.0) mm; real MH_01 mono, 7 stretches, 6.30 / 6.20 / 6.24 mm. Stereo keeps 1.0: each
 # keyframe's cam1 match is a fresh measurement (real MH_01 stereo 5.59 -> 5.82 mm at 1.5)
 MODE_DEFAULTS["mono"]["backend"]["vision"]["pixel_sigma"] = 1.5
+
+
+def merged(base: dict, over: dict) -> dict:
+    """``over`` laid onto ``base`` key by key (nested mappings merged, not replaced)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

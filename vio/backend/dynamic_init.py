@@ -310,7 +310,8 @@ def _align(win: InitWindow, cam: CameraCalib, cfg: BackendConfig, params, pims: 
     # a moderate disagreement (the accelerometer bias and the tilt not yet separable):
     # start anyway, with the disagreement as the roll-pitch / velocity prior sigmas; the
     # velocity prior is never tighter than the alignment's own v0 sigma (real MH_05 mono
-    # from frame 160 at 1 px: 0.088 m/s; with the default 0.05 m/s that stretch's ATE 168 -> 153 mm)
+    # from frame 160 at 1 px: 0.088 m/s; with the default 0.05 m/s that stretch's ATE
+    # 168 -> 153 mm)
     rp = max(ic.prior_rp_sigma, float(np.radians(dg)))
     vel = max(ic.prior_vel_sigma, dv, diag["v0_sigma"])
     state = InitialState(win.t_ns[0], est.atPose3(X(0)), est.atVector(V(0)),
