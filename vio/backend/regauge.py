@@ -33,7 +33,6 @@ from vio.backend.smoother import install, rebuilt
 from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
 from vio.backend.viba import History
 from vio.backend.viba_worker import BatchWorker
-from vio.frontend.camera import skew
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -74,7 +73,7 @@ class Similarity:
         ``s``; the others (biases, extrinsic, td, padding, brightness) unchanged."""
         ch, M = chr(gtsam.Symbol(key).chr()), np.eye(dim)
         if ch == "x":
-            M[3:, :3] = (self.s - 1.0) / self.s * skew(self.t_bc)
+            M[3:, :3] = (self.s - 1.0) / self.s * gtsam.Rot3.Hat(self.t_bc)
             M[3:, 3:] /= self.s
         elif ch in ("v", "p"):
             M = self.Rm.T / self.s
