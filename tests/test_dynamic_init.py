@@ -180,11 +180,9 @@ def test_simulated_moving_start(sim_windows, seed):
     assert res.v0_disagreement < 0.15 and res.gravity_disagreement_deg < 1.5
 
 
-def test_real_mh05_first_window_from_hover():
-    """Real MH_05 images from the first frame, where the MAV hovers (0.005 m/s) before
-    climbing (0.35 m/s after 1 s). Started at zero gyro bias (true [-0.002, 0.021, 0.077]
-    rad/s) the alignment settled in a local minimum with v0 = 0.40 m/s and the batch
-    accepted it; the visual-rotation bias (``gyro_init``) starts it in the right basin."""
+def _mh05_window(first: int, n: int = 31):
+    """The real MH_05 images ``first .. first + n - 1`` through mono's KLT front end,
+    aligned with mono's defaults: (data, first packet, mono config, AlignResult)."""
     from conftest import shared
     from vio.io.euroc import load_euroc
     from vio.run import _image_files, default_config
@@ -192,14 +190,22 @@ def test_real_mh05_first_window_from_hover():
     data = load_euroc(shared("euroc_MH_05_mono_15s"))
     cfg = default_config("mono")
     stage = ImageStage(data.cam0.calib, None, cfg.frontend)
-    n = 31
-    pk = [stage(p) for p in packets(data.imu, data.cam0.t_ns[:n], 0.0,
-                                    image_files=_image_files(data, False, n))]
+    files = _image_files(data, False, first + n)[first:]
+    pk = [stage(p) for p in packets(data.imu, data.cam0.t_ns[first:first + n], 0.0, image_files=files)]
     res = align(init_window(pk, cfg.backend.init.dynamic.step_s), data.cam0.calib, data.imu_calib,
                 cfg.backend)
+    return data, pk[0], cfg, res
+
+
+def test_real_mh05_first_window_from_hover():
+    """Real MH_05 images from the first frame, where the MAV hovers (0.005 m/s) before
+    climbing (0.35 m/s after 1 s). Started at zero gyro bias (true [-0.002, 0.021, 0.077]
+    rad/s) the alignment settled in a local minimum with v0 = 0.40 m/s and the batch
+    accepted it; the visual-rotation bias (``gyro_init``) starts it in the right basin."""
+    data, pk0, _, res = _mh05_window(0)
     assert res.ok, res.reason
     gt = data.groundtruth
-    i = np.searchsorted(gt.t_ns, pk[0].t_ns)
+    i = np.searchsorted(gt.t_ns, pk0.t_ns)
     R_true = gtsam.Rot3.Quaternion(*gt.q_wxyz[i]).matrix()
     dv, dg, dbg = _b0_errors(res.state, R_true, gt.v_w[i], gt.bg[i])
     print(f"MH_05 first window: |dv| {dv:.4f} m/s, gravity {dg:.2f} deg, |dbg| {dbg:.4f} rad/s")
@@ -211,18 +217,7 @@ def test_real_mh05_late_window_keeps_its_velocity_uncertainty():
     (0.090 m/s with mono's defaults) is wider than the default velocity prior (0.05 m/s),
     and the first state's prior takes the wider one (``bench_stretches.py``, pixel sigma
     1 px then: start 160 ATE 168 -> 153 mm, start 110 122 -> 118 mm)."""
-    from conftest import shared
-    from vio.io.euroc import load_euroc
-    from vio.run import _image_files, default_config
-    from vio.tracking import ImageStage
-    data = load_euroc(shared("euroc_MH_05_mono_15s"))
-    cfg = default_config("mono")
-    stage = ImageStage(data.cam0.calib, None, cfg.frontend)
-    first, n = 110, 31
-    files = _image_files(data, False, first + n)[first:]
-    pk = [stage(p) for p in packets(data.imu, data.cam0.t_ns[first:first + n], 0.0, image_files=files)]
-    res = align(init_window(pk, cfg.backend.init.dynamic.step_s), data.cam0.calib, data.imu_calib,
-                cfg.backend)
+    _, _, cfg, res = _mh05_window(110)
     assert res.ok, res.reason
     assert res.v0_sigma > cfg.backend.init.prior_vel_sigma      # measured 0.090
     assert res.state.vel_sigma is not None and res.state.vel_sigma >= res.v0_sigma
