@@ -187,10 +187,10 @@ PRIME = 32
 
 def _early_stream(data: EurocDataset, cfg: PipelineConfig, mode: str,
                   stamps: np.ndarray) -> tuple[Iterator[FramePacket], Callable | None] | None:
-    """The packet stream of a KLT-worker mode without td feedback (mono, stereo), started
-    before the pipeline exists so that the worker tracks while it loads; None otherwise."""
-    klt_only = mode in KLT_WORKER_MODES and mode not in PHOTOMETRIC_MODES
-    if cfg.live or not klt_only or not (cfg.frontend.worker_process and overlap.SUPPORTED):
+    """The packet stream of the modes whose stream needs no pipeline (mono, stereo: no td
+    feedback, no photometric source), built before the pipeline so that the KLT worker,
+    where there is one, tracks while the pipeline loads; None otherwise."""
+    if cfg.live or mode not in KLT_WORKER_MODES or mode in PHOTOMETRIC_MODES:
         return None
     return _packet_stream(data, cfg, mode, stamps, None)
 
