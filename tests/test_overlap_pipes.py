@@ -101,3 +101,27 @@ def test_image_stage_warm_up_tracks_its_synthetic_pair():
     (``_preload`` only reports a failing warm-up)."""
     from vio import tracking
     assert tracking.warm_up() is None
+
+
+def test_worker_pipes_hold_the_primed_packets_without_blocking_the_parent():
+    """Both pipes of a worker are widened (Linux): the primed packets (~1.5 KB each, two to
+    a page of the default 16-page pipe) had filled the worker's stdin while it was still
+    loading its kernels, and the parent waited there 0.5-0.8 s (real MH_01 stereo)."""
+    import sys
+
+    import pytest
+
+    from vio import overlap
+    fcntl = pytest.importorskip("fcntl")
+    if not sys.platform.startswith("linux"):
+        pytest.skip("F_SETPIPE_SZ is Linux-only")
+    from pathlib import Path
+    cap = Path("/proc/sys/fs/pipe-max-size")
+    want = min(1 << 20, int(cap.read_text())) if cap.exists() else 1 << 20   # what _widen can get
+    proc = overlap._worker_process()
+    try:
+        get = getattr(fcntl, "F_GETPIPE_SZ", 1032)
+        assert fcntl.fcntl(proc.stdin.fileno(), get) >= want
+        assert fcntl.fcntl(proc.stdout.fileno(), get) >= want
+    finally:
+        overlap._shutdown(proc)

@@ -76,10 +76,14 @@ def _worker_process(preload: tuple[str, ...] = ()) -> subprocess.Popen:
     replies with ``select`` on the pipe, which cannot see bytes a buffered reader has
     already pulled in (two replies read at once left the second one unseen:
     ``LivePipeline.close`` then waited forever, and ``overlapped`` would time out on its
-    last result). The worker imports the ``preload`` modules before it reads its stage."""
+    last result). The worker imports the ``preload`` modules before it reads its stage.
+    Both pipes are widened (:func:`_widen`): the packets ``overlapped`` sends ahead
+    (``prime``, ~1.5 KB each, one 4-KB page per two) would otherwise fill the worker's
+    stdin while it is still loading its kernels, and block the parent there."""
     proc = subprocess.Popen([sys.executable, "-m", "vio.overlap", *preload], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, bufsize=0, env=one_blas_thread(dict(os.environ)))
     _widen(proc.stdout)
+    _widen(proc.stdin)
     return proc
 
 
