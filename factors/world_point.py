@@ -16,12 +16,6 @@ GTSAM's right perturbation ``T Exp([w, v])``, ``d p_b / d w = [p_b]x`` and
 1 mm) gives the constant ``BEHIND_CAMERA_RESIDUAL`` and zero Jacobian rows. A robust
 kernel reweights each observation's 2 rows (IRLS, ``factors.robust``). The extrinsic
 ``T_b_c`` is a constant of the factor (held, not estimated, where this factor is used).
-
-:func:`world_point_linear` gives the same factor already linearized, one
-``LinearContainerFactor`` per observation (its rows involve only ``p_w``, its body and
-td): for observations the smoother marginalizes in the update that adds them (the
-farewell factors of ``vio.backend.point_tracks``), linearized once in one compiled call
-instead of a Python callback per point.
 """
 
 from __future__ import annotations
@@ -144,43 +138,3 @@ def world_point_factor(point_key: int, body_keys: list[int], td_key: int | None,
         return r, J
 
     return custom_factor(gtsam.noiseModel.Isotropic.Sigma(2 * n, float(sigma)), keys, kinds, fn, cache=True)
-
-
-_UNIT2 = gtsam.noiseModel.Unit.Create(2)
-
-
-def world_point_linear(point_key: int, body_keys: list[int], td_key: int | None, T_b_c: gtsam.Pose3,
-                       lin: gtsam.Values, uv: np.ndarray, vel: np.ndarray, off: np.ndarray, sigma: float,
-                       kernel: tuple[int, float] = (0, 0.0)) -> list[gtsam.LinearContainerFactor]:
-    """:func:`world_point_factor`'s factor linearized at ``lin`` (which holds its keys), as
-    one ``LinearContainerFactor`` per observation over ``[p_w, body, td]``, whitened (unit
-    noise; ``b = -r / sigma``, as ``NoiseModelFactor::linearize``) and with ``lin`` as its
-    linearization point, so that a relinearization of its keys shifts it to first order.
-    An observation with a non-finite row (none in practice) is left out. The robust kernel
-    weighs each observation at ``lin``, as the callback factor would there."""
-    n = len(body_keys)
-    use_td = td_key is not None
-    r, J = np.zeros(2 * n), np.zeros((2 * n, 3 + 6 * n + use_td))
-    bodies = np.array([lin.atPose3(k).matrix() for k in body_keys]).reshape(n, 4, 4)
-    p_w = np.asarray(lin.atVector(point_key), float)
-    td = float(lin.atVector(td_key)[0]) if use_td else 0.0
-    world_point_eval(p_w, T_b_c.rotation().matrix(), np.asarray(T_b_c.translation(), float), bodies,
-                     np.ascontiguousarray(uv, float).reshape(n, 2), np.ascontiguousarray(vel, float).reshape(n, 2),
-                     np.ascontiguousarray(off, float).reshape(n), td, use_td, float(sigma), int(kernel[0]),
-                     float(kernel[1]), r, J)
-    r /= sigma
-    J /= sigma
-    out = []
-    for o, bk in enumerate(body_keys):
-        rows = slice(2 * o, 2 * o + 2)
-        A_p, A_x = J[rows, 0:3], J[rows, 3 + 6 * o:9 + 6 * o]
-        if not (np.isfinite(r[rows]).all() and np.isfinite(A_p).all() and np.isfinite(A_x).all()):
-            continue
-        keys = [int(point_key), int(bk)]
-        if use_td:
-            jf = gtsam.JacobianFactor(keys[0], A_p, keys[1], A_x, int(td_key), J[rows, -1:], -r[rows], _UNIT2)
-            keys.append(int(td_key))
-        else:
-            jf = gtsam.JacobianFactor(keys[0], A_p, keys[1], A_x, -r[rows], _UNIT2)
-        out.append(gtsam.LinearContainerFactor(jf, lin.extract(gtsam.KeyVector(keys))))
-    return out

@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from factors.jit import njit
-from factors.world_point import world_point_factor, world_point_linear
+from factors.world_point import world_point_factor
 from vio.backend import graph
 from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Obs
@@ -109,19 +109,21 @@ class PointTracks:
         stamps[pt.key] = t
         self.tracks[lid] = pt
 
-    def _observations(self, jobs: list[tuple[PointTrack, list[int], list[Obs], np.ndarray | None]]
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The observations of every ``(point, frames, obs, p_w)`` job in one array:
-        ``uv`` (N, 2), the image velocities ``vel`` (N, 2) multiplying td (normalized
-        units/s), the offsets ``off`` (N,) and ``start`` (jobs + 1,) where each job's rows
-        begin. ``vel``: with ``td_velocity = "predicted"`` (the default) those of ``p_w``
-        (None: the estimate) seen by a camera moving as the state says
-        (``vio.backend.motion.motion_table``: ``dp_c/dt = -w x p_c - v``), so pixel noise
-        does not pull td towards zero, zero where the prediction is further than
-        ``td_velocity_gate`` from the measurement or the point is not in front; the measured
-        ones otherwise; capped at ``td_velocity_max``. ``off``: the rolling-shutter row
-        delay minus the td its keyframe time holds. The velocities in one compiled pass
-        (``vio.backend.td_velocity.points_velocities``)."""
+    def _factors(self, jobs: list[tuple[PointTrack, list[int], list[Obs], np.ndarray | None]]
+                 ) -> list[gtsam.NonlinearFactor]:
+        """The world-point factor of each ``(point, frames, obs, p_w)`` job: the
+        observations ``obs`` made in ``frames``, each moved by ``(td + offset) vel``.
+        ``vel``: the image velocities multiplying td (normalized units/s); with
+        ``td_velocity = "predicted"`` (the default) those of ``p_w`` (None: the estimate)
+        seen by a camera moving as the state says (``vio.backend.motion.motion_table``:
+        ``dp_c/dt = -w x p_c - v``), so pixel noise does not pull td towards zero, zero
+        where the prediction is further than ``td_velocity_gate`` from the measurement or
+        the point is not in front; the measured ones otherwise; capped at
+        ``td_velocity_max``. ``offset``: the rolling-shutter row delay minus the td its
+        keyframe time holds. All jobs' observations in one array (``Obs.packed``), the
+        velocities in one compiled pass (``vio.backend.td_velocity.points_velocities``)."""
+        if not jobs:
+            return []
         est, vc = self.est, self.est.cfg.vision
         P, start, off = gather([obs for _, _, obs, _ in jobs], est.cam.line_time_s)
         vel = graph._td_velocity(P[:, 2:4], vc.td_velocity_max)
@@ -134,50 +136,11 @@ class PointTracks:
             meas, vel = vel, np.empty_like(vel)
             points_velocities(start, idx, R, t, w, v, p_w, meas, float(vc.min_depth_m), float(vc.td_velocity_gate),
                               float(vc.td_velocity_max), vel)
-        return uv, vel, off, start
-
-    def _factors(self, jobs: list[tuple[PointTrack, list[int], list[Obs], np.ndarray | None]]
-                 ) -> list[gtsam.NonlinearFactor]:
-        """The world-point factor of each ``(point, frames, obs, p_w)`` job: the
-        observations ``obs`` made in ``frames``, each moved by ``(td + offset) vel``
-        (:meth:`_observations`)."""
-        if not jobs:
-            return []
-        est, vc = self.est, self.est.cfg.vision
-        uv, vel, off, start = self._observations(jobs)
         kernel = (_KERNELS[vc.kernel], float(vc.kernel_k))
         T_b_c, td_key = est.values.atPose3(graph.EXTRINSIC), graph.TD if vc.use_td else None
         return [world_point_factor(pt.key, [graph.X(f) for f in fr], td_key, T_b_c, uv[a:b], vel[a:b], off[a:b],
                                    est.sigma, kernel)
                 for (pt, fr, _, _), a, b in zip(jobs, start[:-1], start[1:])]
-
-    def _farewells(self, jobs: list, g: gtsam.NonlinearFactorGraph, t: float) -> None:
-        """Add the farewell factors of ``(point, leaving frames, obs, None)`` jobs to ``g``
-        for the update at ``t`` (s). Those whose keyframes the smoother marginalizes in this
-        very update (timestamp before ``t - lag_s``, ``IncrementalFixedLagSmoother``'s own
-        test) are added already linearized at the smoother's linearization point, where
-        iSAM2 would linearize the callback factor (``factors.world_point.world_point_linear``;
-        a relinearization of their keys in this update shifts them to first order): real
-        MH_05 mono has ~75 farewells a keyframe (~50 of them marginalized at once), each had
-        cost a factor construction and a Python callback. The others (a keyframe exactly ``lag_s`` old can stay one more
-        update; keys the smoother does not hold yet) get the callback factor."""
-        if not jobs:
-            return
-        est, vc = self.est, self.est.cfg.vision
-        lin = est.smoother.getLinearizationPoint()
-        cut = t - est.cfg.solver.lag_s
-        uv, vel, off, start = self._observations(jobs)
-        kernel = (_KERNELS[vc.kernel], float(vc.kernel_k))
-        T_b_c, td_key = est.values.atPose3(graph.EXTRINSIC), graph.TD if vc.use_td else None
-        for (pt, fr, _, _), a, b in zip(jobs, start[:-1], start[1:]):
-            keys = [pt.key, *[graph.X(f) for f in fr]] + ([td_key] if td_key is not None else [])
-            if all(est.kf_t[f] * 1e-9 < cut for f in fr) and all(lin.exists(k) for k in keys):
-                for f in world_point_linear(pt.key, keys[1:1 + len(fr)], td_key, T_b_c, lin, uv[a:b], vel[a:b],
-                                            off[a:b], est.sigma, kernel):
-                    g.add(f)
-            else:
-                g.add(world_point_factor(pt.key, keys[1:1 + len(fr)], td_key, T_b_c, uv[a:b], vel[a:b], off[a:b],
-                                         est.sigma, kernel))
 
     def _reserve(self, jobs: list, pt: PointTrack, frames: list[int], g: gtsam.NonlinearFactorGraph,
                  p_w: np.ndarray | None = None) -> None:
@@ -206,8 +169,7 @@ class PointTracks:
         whole froze its in-window observations too (``bench_midflight`` MH_04@40 0.234 ->
         0.319%, MH_05@40 0.136 -> 0.214%, ~20% less CPU). Points with no observation left
         in the window are forgotten."""
-        jobs: list = []    # the main factors, built together into their slots of g
-        farewells: list = []
+        jobs: list = []    # the factors, built together into their slots of g
         for lid in list(self.tracks):
             pt = self.tracks[lid]
             gone = [f for f in pt.frames if f in leave]
@@ -217,7 +179,7 @@ class PointTracks:
             if pt.index is not None:
                 removals.append(pt.index)
             if gone:
-                farewells.append((pt, gone, [pt.obs[f] for f in gone], None))
+                self._reserve(jobs, pt, gone, g)
             for f in [f for f in pt.obs if f in leave]:
                 del pt.obs[f]
             if not pt.obs:
@@ -226,7 +188,6 @@ class PointTracks:
             self._main(pt, sorted(pt.obs), g, jobs)
             if live:
                 stamps[pt.key] = t
-        self._farewells(farewells, g, t)
         self._fill(g, jobs)
 
     def record_factor_indices(self, indices: list[int]) -> None:
