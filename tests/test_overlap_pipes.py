@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import operator
+import sys
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
+from vio import overlap
 from vio.overlap import overlapped
 
 
@@ -107,15 +112,9 @@ def test_worker_pipes_hold_the_primed_packets_without_blocking_the_parent():
     """Both pipes of a worker are widened (Linux): the primed packets (~1.5 KB each, two to
     a page of the default 16-page pipe) had filled the worker's stdin while it was still
     loading its kernels, and the parent waited there 0.5-0.8 s (real MH_01 stereo)."""
-    import sys
-
-    import pytest
-
-    from vio import overlap
     fcntl = pytest.importorskip("fcntl")
     if not sys.platform.startswith("linux"):
         pytest.skip("F_SETPIPE_SZ is Linux-only")
-    from pathlib import Path
     cap = Path("/proc/sys/fs/pipe-max-size")
     want = min(1 << 20, int(cap.read_text())) if cap.exists() else 1 << 20   # what _widen can get
     proc = overlap._worker_process()

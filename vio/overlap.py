@@ -107,9 +107,11 @@ def _stop_prestarted() -> None:
 
 
 def _widen(pipe: IO[bytes], size: int = 1 << 20) -> None:
-    """Enlarge a pipe's kernel buffer (Linux; 64 KB by default) so the worker can run
-    ``depth`` results ahead while the backend is busy in a keyframe update, instead of
-    blocking on its write after ~4 of them; silently left as is where not possible."""
+    """Enlarge a pipe's kernel buffer (Linux; 64 KB by default, at most
+    ``/proc/sys/fs/pipe-max-size``) so the worker can run ``depth`` results ahead while the
+    backend is busy in a keyframe update, instead of blocking on its write after ~4 of
+    them (a mono frame's answer is ~10 KB: ~6 frames ahead of a parent still starting up);
+    silently left as is where not possible. Both ends call it on the results pipe."""
     if fcntl is None or not sys.platform.startswith("linux"):
         return
     try:
@@ -167,17 +169,6 @@ def _preload(name: str) -> None:
             print(f"vio.overlap: {name}.warm_up failed: {exc}", file=sys.stderr)
 
 
-def _widen_pipe(fd: int, size: int = 1 << 20) -> None:
-    """Let the results pipe hold ``size`` bytes (Linux ``F_SETPIPE_SZ``; elsewhere, or
-    above ``/proc/sys/fs/pipe-max-size``, it keeps its 64 KB): a mono frame's answer is
-    ~10 KB, so 64 KB let the worker run only ~6 frames ahead of a parent still starting up."""
-    try:
-        import fcntl
-        fcntl.fcntl(fd, getattr(fcntl, "F_SETPIPE_SZ", 1031), size)
-    except (ImportError, OSError):
-        pass
-
-
 def worker_main() -> None:
     """Worker loop: read (factory, args[, nice]), then packets until None; answer each with
     ("ok", packet) or ("error", (exception, traceback)) and stop at the first error.
@@ -187,7 +178,7 @@ def worker_main() -> None:
     7.1 s), hybrid 1.8 -> 1.9x, mono unchanged (its backend bounds it); same output.
     A stage with ``submit`` runs pipelined (``_pipelined``)."""
     out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
-    _widen_pipe(out.fileno())
+    _widen(out)                      # the results pipe, from this end too
     sys.stdout = sys.stderr          # stray prints must not corrupt the protocol
     inp = sys.stdin.buffer
     try:
