@@ -226,7 +226,8 @@ def test_report_puts_image_rows_in_their_own_tables():
            "td_true_ms": 10.0, "overrides": {},
            "ours": {"ate_rmse": 0.011, "path_m": 14.0, "recoveries": 0, "keyframes": 125, "td_ms": 8.6,
                     "td_err_ms": -1.4, "frame_ms": {"mean": 30.0, "p50": 20.0, "p95": 90.0, "max": 200.0},
-                    "frame_wall_ms": {"mean": 33.0, "p50": 30.0, "p95": 95.0, "max": 210.0}, "rtf": 1.6},
+                    "frame_wall_ms": {"mean": 33.0, "p50": 30.0, "p95": 95.0, "max": 210.0}, "rtf": 1.6,
+                    "rtf_process": 1.3},
            "baseline": {"ate_rmse": 0.041, "recoveries": 0, "keyframes": 125,
                         "frame_ms": {"mean": 20.0, "p50": 2.0, "p95": 80.0, "max": 150.0}, "rtf": 2.5},
            "baseline_td_known": {"ate_rmse": 0.007},
@@ -242,8 +243,10 @@ def test_report_puts_image_rows_in_their_own_tables():
     assert "| sim11-stereo-20s/td10ms | 30.0 / 20.0 / 90.0 / 200.0 | 33.0 / 95.0 |" in md
     section = report.readme_section(res)
     assert "| SEQ@0+20s/td5ms | 0.050 | 0.100 | 5.0 | 2.5 |" in section           # feature rows as before
-    assert "| sim11-stereo-20s/td10ms | stereo | 0.011 | 0.041 | 0.007 | 8.60 (-1.40) | 30.0 | 33.0 | 20.0 | 1.60 |" \
-        in section
+    assert ("| sim11-stereo-20s/td10ms | stereo | 0.011 | 0.041 | 0.007 | 8.60 (-1.40) | 30.0 | 33.0 | 20.0 "
+            "| 1.60 / 1.30 |") in section
+    # the speed table gives the whole-process real-time factor next to the loop's
+    assert "| 1.60 / 2.50 | 1.30 |" in md
 
 
 # ------------------------------------------------------------------ calibration runs
