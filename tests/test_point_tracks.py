@@ -66,3 +66,26 @@ def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s):
     # points' threshold on 20 excerpts, 49 table rows and the real V1_01 tracks
     # (SolverConfig), so this bounds the gap instead of ranking them
     assert e.ate_rmse < 0.01 * e.path_length and e.ate_rmse <= 1.5 * a.ate_rmse
+
+
+def test_prefetched_farewells_change_nothing(mh04_12s, monkeypatch):
+    """Farewell factors built between keyframes (``Estimator.prefetch``) are the ones the
+    keyframe's update would build: the run is the same to the last bit with and without,
+    and most farewells come from the prefetch."""
+    from vio.backend.estimator import Estimator
+    from vio.backend.point_tracks import PointTracks
+    used = {"early": 0}
+    orig = PointTracks.prepare_update
+
+    def count(self, *a, **k):
+        if self._early_values is self.est.values:
+            used["early"] += len(self._early)
+        return orig(self, *a, **k)
+
+    monkeypatch.setattr(PointTracks, "prepare_update", count)
+    with_prefetch = run_dataset(mh04_12s, _cfg("point"), mode="features")
+    assert used["early"] > 100
+    monkeypatch.setattr(Estimator, "prefetch", lambda self, t_ns: None)
+    without = run_dataset(mh04_12s, _cfg("point"), mode="features")
+    for a, b in zip(with_prefetch.arrays(), without.arrays()):
+        assert np.array_equal(a, b)

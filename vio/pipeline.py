@@ -184,7 +184,9 @@ class Pipeline:
             self._kf_features, self._kf_t = pkt.features, pkt.t_ns
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0)
-        return self._emit(pkt, False, still, t0)
+        out = self._emit(pkt, False, still, t0)
+        self.est.prefetch(pkt.t_ns)   # the next update's farewells, once this frame has its pose
+        return out
 
     def _count_faults(self, pkt: FramePacket) -> None:
         """Count the IMU gaps (distinct) and dropped samples of a packet (``vio.faults``)."""

@@ -219,6 +219,18 @@ class Estimator:
                         self.cfg.bridge.step_s)
         self._bridge_t = max(self._bridge_t, t1)
 
+    def prefetch(self, t_ns: int) -> None:
+        """Between keyframes, after the frame at ``t_ns`` has its output: the world points'
+        farewell factors of the keyframes already past the lag, which the next keyframe
+        (later than ``t_ns``) drops whatever its time; its update then finds them built
+        (``PointTracks.prefetch``; the same factors, so the same result)."""
+        if self.smoother is None or not self.lm.points.tracks:
+            return
+        t, lag = t_ns * 1e-9, self.cfg.solver.lag_s
+        leave = {k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= lag - 1e-9}
+        if leave:
+            self.lm.points.prefetch(leave)
+
     def latest(self) -> tuple[gtsam.Pose3, np.ndarray, gtsam.imuBias.ConstantBias]:
         """Estimate of the newest keyframe."""
         return (self.values.atPose3(X(self.k)), self.values.atVector(V(self.k)),

@@ -33,6 +33,7 @@ from factors.world_point import world_point_factor
 from vio.backend import graph
 from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Obs
+from vio.backend.motion import motion_table
 from vio.backend.td_velocity import points_velocities
 from vio.backend.track_arrays import gather
 
@@ -64,6 +65,8 @@ class PointTracks:
         self._pending: list[tuple[PointTrack, int]] = []   # (track, position in g)
         self._next_key = 0
         self._table = None     # the owner's motion table of the current update (callable)
+        self._early: dict = {}            # (key, leaving frames) -> farewell factor (prefetch)
+        self._early_values = None         # the estimate they were built at
 
     def begin_update(self, table) -> None:
         """The motion table (``vio.backend.motion.motion_table``) for this update's velocities."""
@@ -78,6 +81,31 @@ class PointTracks:
     def reset(self) -> None:
         self.tracks = {}
         self._pending = []
+        self._early, self._early_values = {}, None
+
+    def prefetch(self, leave: set[int]) -> None:
+        """Build the farewell factors of the keyframes ``leave`` ahead of the update that drops
+        them (``Estimator.prefetch``, between keyframes). They are the factors
+        :meth:`prepare_update` would build: what goes into them (the leaving observations,
+        the estimate, the motion of those keyframes) does not change between updates, and
+        they are used only while the estimate they were built at is the current one."""
+        est = self.est
+        if self._early_values is not est.values:
+            self._early, self._early_values = {}, est.values
+        jobs = []
+        for pt in self.tracks.values():
+            gone = tuple(f for f in pt.frames if f in leave)
+            if gone and (pt.key, gone) not in self._early:
+                jobs.append((pt, list(gone), [pt.obs[f] for f in gone], None))
+        if not jobs:
+            return
+        table = motion_table(est, est.k + 1, None, lambda f: est.values.atPose3(graph.X(f)))
+        held, self._table = self._table, (lambda: table)
+        try:
+            for (pt, gone, _, _), factor in zip(jobs, self._factors(jobs)):
+                self._early[(pt.key, tuple(gone))] = factor
+        finally:
+            self._table = held
 
     def n_live(self, k: int) -> int:
         return sum(1 for p in self.tracks.values() if k in p.obs)
@@ -170,6 +198,7 @@ class PointTracks:
         0.319%, MH_05@40 0.136 -> 0.214%, ~20% less CPU). Points with no observation left
         in the window are forgotten."""
         jobs: list = []    # the factors, built together into their slots of g
+        early_ok = self._early_values is self.est.values   # prefetched farewells still valid
         for lid in list(self.tracks):
             pt = self.tracks[lid]
             gone = [f for f in pt.frames if f in leave]
@@ -178,7 +207,10 @@ class PointTracks:
                 continue
             if pt.index is not None:
                 removals.append(pt.index)
-            if gone:
+            early = self._early.get((pt.key, tuple(gone))) if early_ok and gone else None
+            if early is not None:
+                g.add(early)
+            elif gone:
                 self._reserve(jobs, pt, gone, g)
             for f in [f for f in pt.obs if f in leave]:
                 del pt.obs[f]
@@ -189,6 +221,7 @@ class PointTracks:
             if live:
                 stamps[pt.key] = t
         self._fill(g, jobs)
+        self._early, self._early_values = {}, None
 
     def record_factor_indices(self, indices: list[int]) -> None:
         for pt, pos in self._pending:
