@@ -84,9 +84,14 @@ MODE_DEFAULTS["mono"]["frontend"] = {"max_features": 200, "min_dist_px": 25}
 # p95 175 / 170 / 145 -> 127 / 123 / 113 ms, max 218 / 231 / 187 -> 183 / 154 / 143 ms;
 # 27 starts 0.0820 -> 0.0827 m (log ratio +0.010 +- 0.008: the keyframe's own output is
 # its estimate before the removal); real MH_01 mono 22 stretches 6.165 -> 6.160 mm. Stereo:
-# MH_01 stretches 5.608 -> 5.606 mm, p95 83 / 83 ms either way (its bundles' outlier
-# updates are cheap; its worker bounds it), so it keeps "now"
+# MH_01 stretches 5.608 -> 5.606 mm, p95 83 / 83 ms either way then (on a VM loaded
+# enough to hide it). Re-measured on the free VM (stop 44), stereo takes it too: real MH_01,
+# three alternated pairs, max 62-71 -> 55-56 ms, keyframe frames -2 ms on average, the 7
+# stretches 5.59 mm either way (each within 0.01 mm); renders sim11 / sim12 / sim14 p95
+# 46.2 / 44.2 / 43.9 -> 43.9 / 37.9 / 32.8 ms, max 64.8 / 54.3 / 55.4 -> 55.7 / 47.0 /
+# 42.7 ms, ATE 10.0 / 14.5 / 9.2 -> 10.0 / 14.5 / 9.3 mm
 MODE_DEFAULTS["mono"]["backend"]["solver"] = {"outlier_update": "next_frame"}
+MODE_DEFAULTS["stereo"]["backend"]["solver"] = {"outlier_update": "next_frame"}
 # direct: by default no factor of the photometric points involves td (unobservable there),
 # so it is held at the sync layer's value (``--td``) instead of being reported as estimated
 # (``direct.points.exposure_td`` with ``examples/photometric_td.yaml`` estimates it);
