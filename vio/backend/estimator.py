@@ -226,10 +226,13 @@ class Estimator:
         (``PointTracks.prefetch``; the same factors, so the same result)."""
         if self.smoother is None or not self.lm.points.tracks:
             return
-        t, lag = t_ns * 1e-9, self.cfg.solver.lag_s
-        leave = {k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= lag - 1e-9}
+        leave = set(self._leaving(t_ns * 1e-9))
         if leave:
             self.lm.points.prefetch(leave)
+
+    def _leaving(self, t_s: float) -> list[int]:
+        """The window's keyframes a keyframe at ``t_s`` (s) drops: at least ``lag_s`` old."""
+        return [k for k, tk in self.kf_t.items() if t_s - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
 
     def latest(self) -> tuple[gtsam.Pose3, np.ndarray, gtsam.imuBias.ConstantBias]:
         """Estimate of the newest keyframe."""
@@ -292,7 +295,7 @@ class Estimator:
         if gyro is not None:
             self.rates.add_keyframe(k1, t_ns, gyro, td_obs)
         self.lm.observe(k1, features)
-        leaving = [k for k, tk in self.kf_t.items() if t - tk * 1e-9 >= self.cfg.solver.lag_s - 1e-9]
+        leaving = self._leaving(t)
         removals = self.lm.prepare_update(k1, pred, leaving, g, v, stamps)
         removals += self.gauge.prepare_update(
             sorted(self.kf_t), leaving, lambda k: v.atPose3(X(k)) if v.exists(X(k)) else self.values.atPose3(X(k)),

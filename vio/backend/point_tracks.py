@@ -99,6 +99,7 @@ class PointTracks:
                 jobs.append((pt, list(gone), [pt.obs[f] for f in gone], None))
         if not jobs:
             return
+        # the window's rows only: keyframe k + 1 does not exist yet, so no prediction is read
         table = motion_table(est, est.k + 1, None, lambda f: est.values.atPose3(graph.X(f)))
         held, self._table = self._table, (lambda: table)
         try:
