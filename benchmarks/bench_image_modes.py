@@ -7,7 +7,7 @@ three sequences of issue #5 with seeds never used in development: stereo with
 td = 10 ms (seed 11), stereo with a 30 us/row rolling shutter and td = 10 ms
 (seed 12), mono (cam0 only) with td = 10 ms (seed 13); 20 s each (``--quick``: 8 s).
 Each run is ``vio run --mode stereo|mono`` with the mode's defaults
-(``vio.run.default_config``), in a fresh process (``run_all.py --worker``); the
+(``vio.run.default_config``), in a fresh process (``jobs.py``); the
 stereo sequence runs a second time with ``frontend.worker_process = False`` to
 show what the front-end worker process buys.
 

@@ -8,7 +8,7 @@ baseline on our keyframes: ``baseline_gtsam.py`` on feature tracks,
 ``baseline_stereo.py`` on the observations our KLT front end produced in the image
 modes), ``micro`` (bench_factor_cost.py, bench_photometric.py),
 ``scaling`` (time per frame vs features and window length), ``memory`` (the soak
-run). Each run is a subprocess (``--worker``) so its peak RSS is its own; ground
+run). Each run is a subprocess (``jobs.py``) so its peak RSS is its own; ground
 truth is read only here, in the parent. Writes ``OUT/results.json`` and
 ``OUT/results.md`` (via report.py); ``--readme`` also refreshes the README section.
 Generated datasets are cached in ``~/.cache/vio-bench`` ($VIO_BENCH_CACHE).
@@ -17,7 +17,6 @@ Generated datasets are cached in ``~/.cache/vio-bench`` ($VIO_BENCH_CACHE).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import re
@@ -34,7 +33,6 @@ ROOT = HERE.parent
 sys.path[:0] = [str(ROOT), str(HERE)]
 
 import datasets as ds  # noqa: E402
-from vio.threads import one_blas_thread  # noqa: E402
 
 SECTIONS = ("accuracy", "micro", "scaling", "memory")
 # modes without a GTSAM-native baseline, and why
@@ -43,121 +41,9 @@ NO_BASELINE = {"direct": "direct mode has no feature tracks after initialization
                          "the stereo and hybrid rows of the same sequence carry the comparison"}
 
 
-# ------------------------------------------------------------------ worker side
-def rss_mb() -> float:
-    """Current resident set size of this process (MB), from /proc."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
-
-
-def peak_rss_mb() -> float:
-    import resource
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def cpu_s() -> tuple[float, float]:
-    """CPU seconds (user + system) used so far by this process and by its reaped
-    children (the image modes' front-end worker): load-independent cost figures."""
-    import resource
-    a, b = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
-    return a.ru_utime + a.ru_stime, b.ru_utime + b.ru_stime
-
-
-def pipeline_config(overrides: dict | None = None, mode: str = "features"):
-    """The mode's defaults (``vio.run.default_config``) with dotted-path overrides,
-    e.g. ``{"backend.solver.lag_s": 4.0}``."""
-    from vio.run import default_config
-
-    def replace(obj, path: list[str], value):
-        if len(path) == 1:
-            return dataclasses.replace(obj, **{path[0]: value})
-        return dataclasses.replace(obj, **{path[0]: replace(getattr(obj, path[0]), path[1:], value)})
-    cfg = default_config(mode)
-    for key, value in (overrides or {}).items():
-        cfg = replace(cfg, key.split("."), value)
-    return cfg
-
-
-def _run_system(job: dict, data, cfg, mode: str) -> tuple:
-    """Ours (recording the schedule, and in image modes the front end's frames, to
-    the job's files) or the baseline replaying them; (RunResult, output times or None)."""
-    from baseline_gtsam import Schedule, record_schedule, run_baseline
-    n = job.get("max_frames")
-    if mode == "features":
-        if job["system"] == "ours":
-            res, sched = record_schedule(data, cfg, n)
-            Path(job["schedule"]).write_text(json.dumps(sched.to_json()))
-            return res, None
-        sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
-        return run_baseline(data, sched, cfg, max_frames=n), None
-    from baseline_stereo import load_frames, record_run, run_image_baseline, save_frames, with_known_td
-    if job["system"] == "ours":
-        rec = record_run(data, cfg, mode, n)
-        Path(job["schedule"]).write_text(json.dumps(rec.schedule.to_json()))
-        save_frames(Path(job["frames"]), rec.frames)
-        return rec.result, rec.emitted_s
-    sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
-    if job.get("td_known_s") is not None:       # the baseline told the true td by the sync layer
-        sched = with_known_td(sched, job["td_known_s"])
-        cfg = dataclasses.replace(cfg, td_s=sched.td_s)
-    return run_image_baseline(data, sched, load_frames(Path(job["frames"])), cfg, mode, n), None
-
-
-def worker(job: dict) -> dict:
-    """Run one system on one dataset (in this process); arrays for the parent.
-    ``job["mode"]`` (default ``features``) picks the pipeline mode and its defaults."""
-    if job["system"] == "soak":
-        from memory_soak import soak_worker
-        return soak_worker(job)
-    mode = job.get("mode", "features")
-    from vio.modes import KLT_WORKER_MODES
-    if job["system"] == "ours" and mode in KLT_WORKER_MODES:
-        from vio.overlap import prestart
-        prestart()   # as `vio run` does (vio.cli): the KLT worker starts up while this loads
-    from vio.io.euroc import load_euroc
-    data = load_euroc(job["data"])
-    cfg = pipeline_config(job.get("overrides"), mode)
-    rss0, cpu0 = rss_mb(), cpu_s()
-    res, emitted = _run_system(job, data, cfg, mode)
-    t_done, cpu1 = time.time(), cpu_s()
-    t, p, q = res.arrays()
-    last = res.outputs[-1] if res.outputs else None
-    return {"t_ns": t.tolist(), "p": p.tolist(), "q": q.tolist(), "mode": mode,
-            "frame_ms": [o.seconds * 1e3 for o in res.outputs[res.n_init:]],   # after initialization
-            "frame_wall_ms": None if not emitted else (np.diff(emitted[max(res.n_init - 1, 0):]) * 1e3).tolist(),
-            "n_landmarks": [o.n_landmarks for o in res.outputs],
-            "wall_s": res.wall_s, "data_s": res.data_s, "frames_in": res.frames_in,
-            "keyframes": res.keyframes, "recoveries": res.recoveries,
-            "td_s": None if last is None else last.td_s,
-            "T_b_c": None if last is None else last.T_b_c.matrix().tolist(),
-            "T_b_c_calib": ds.true_extrinsic(job["data"]) or data.cam0.calib.T_b_c.matrix().tolist(),
-            "estimate_td": cfg.backend.calib.estimate_td,
-            "estimate_extrinsic": cfg.backend.calib.estimate_extrinsic,
-            "rss_start_mb": rss0, "peak_rss_mb": peak_rss_mb(),
-            "cpu_main_s": cpu1[0] - cpu0[0], "cpu_children_s": cpu1[1] - cpu0[1], "t_done": t_done}
-
-
-# ------------------------------------------------------------------ parent side
-def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
-    """Run ``worker(job)`` in a fresh interpreter; ``{"error": ...}`` on failure."""
-    with tempfile.TemporaryDirectory(prefix="vio-bench-") as tmp:
-        job = {**job, "result": str(Path(tmp) / "result.json")}
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(job)]
-        load0, t_spawn = os.getloadavg()[0], time.time()
-        try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
-                                  env=one_blas_thread(dict(os.environ)))   # as `vio run`
-        except subprocess.TimeoutExpired:
-            return {"error": f"timeout after {timeout_s:.0f} s"}
-        if proc.returncode != 0 or not Path(job["result"]).exists():
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-            return {"error": f"exit {proc.returncode}: " + " | ".join(tail)}
-        # 1-min load average before and after: the machine may be shared. process_s: from the
-        # spawn to the run's last output (interpreter, imports, data, start-up and the run)
-        out = json.loads(Path(job["result"]).read_text())
-        return {**out, "load_1m": [load0, os.getloadavg()[0]], "process_s": out["t_done"] - t_spawn}
+# the worker side (one run in a fresh process) lives in jobs.py; re-exported for the
+# scripts that import it from here (bench_image_modes, memory_soak, scaling, tests)
+from jobs import cpu_s, peak_rss_mb, pipeline_config, rss_mb, run_job, worker  # noqa: E402,F401
 
 
 def _stats(x: list[float]) -> dict:
