@@ -147,7 +147,6 @@ def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
         return {**out, "load_1m": [load0, os.getloadavg()[0]], "process_s": out["t_done"] - t_spawn}
 
 
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--worker", required=True, help="the job, JSON (run_job writes it)")
