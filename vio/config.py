@@ -89,6 +89,27 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+def check_ranges(obj: Any, positive: tuple[str, ...] = (), fractions: tuple[str, ...] = (),
+                 signed: tuple[str, ...] = ()) -> None:
+    """Raise ``ValueError`` naming ``Class.field`` unless every numeric field of the
+    dataclass ``obj`` is a number >= 0 (infinity allowed, NaN not; None skipped; ``signed``
+    fields may be negative), the ``positive`` ones > 0 and the ``fractions`` in [0, 1]:
+    a negative window or a zero sigma fails here, not as a solver error mid-run."""
+    name = type(obj).__name__
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        if v != v:
+            raise ValueError(f"{name}.{f.name} must be a number, got {v!r}")
+        if f.name in positive and not v > 0:
+            raise ValueError(f"{name}.{f.name} must be > 0, got {v!r}")
+        if f.name in fractions and not 0 <= v <= 1:
+            raise ValueError(f"{name}.{f.name} must be in [0, 1], got {v!r}")
+        if f.name not in signed and v < 0:
+            raise ValueError(f"{name}.{f.name} must be >= 0, got {v!r}")
+
+
 def from_dict(cls: type[T], data: Any, where: str = "config") -> T:
     """Build dataclass ``cls`` from a mapping; unknown keys are an error.
 

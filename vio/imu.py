@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from vio.config import check_ranges
 from vio.io.types import ImuCalib, ImuData
 
 
@@ -27,6 +28,9 @@ class ImuNoiseConfig:
     scale_walk: float = 15.0
     gravity: float = 9.81
     integration_sigma: float = 1e-4
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("scale_noise", "scale_walk", "gravity"))
 
 
 def combined_params(calib: ImuCalib, cfg: ImuNoiseConfig = ImuNoiseConfig()

@@ -20,6 +20,7 @@ from vio.backend.estimator import Estimator
 from vio.backend.dynamic_init import align, init_window
 from vio.backend.init import imu_stillness, static_init
 from vio.backend.stereo_init import stereo_align
+from vio.config import check_ranges
 from vio.direct.config import DirectConfig
 from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
@@ -56,6 +57,9 @@ class PipelineConfig:
     backend: BackendConfig = field(default_factory=BackendConfig)
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     direct: DirectConfig = field(default_factory=DirectConfig)
+
+    def __post_init__(self) -> None:
+        check_ranges(self, signed=("td_s",))
 
 
 @dataclass(frozen=True)

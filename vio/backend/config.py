@@ -7,7 +7,10 @@ from typing import Literal
 
 from vio.backend.gauge import GaugeConfig
 from vio.backend.health import BridgeConfig, HealthConfig, RealignConfig
+from vio.backend.init_config import (DynamicInitConfig, InitConfig,  # noqa: F401 - re-exported
+                                     StereoInitConfig, TdSearchConfig)
 from vio.backend.scale_refine import RefineConfig
+from vio.config import check_ranges
 from vio.imu import ImuNoiseConfig
 
 
@@ -22,139 +25,8 @@ class KeyframeConfig:
     min_interval_s: float = 0.0
     min_tracked: int = 12
 
-
-@dataclass(frozen=True)
-class TdSearchConfig:
-    """Search for the camera-IMU offset at a dynamic initialization
-    (``vio.backend.td_init``). ``search_s``:
-    half-width of the searched interval (s; 0 turns the search off), ``step_s`` its grid
-    step; ``tol_deg``: a pair whose rotation residual exceeds it counts as an outlier;
-    ``min_pairs``: fewest keyframe pairs with IMU over the whole interval; ``min_gain``,
-    ``max_sigma_s``: when a found remainder is applied; a weaker one (cost drop at least
-    ``try_gain`` residual variances) is tried when the alignment without it is refused,
-    and kept if the alignment's checks pass."""
-
-    search_s: float = 0.05
-    step_s: float = 0.0025
-    tol_deg: float = 1.5
-    min_pairs: int = 8
-    min_gain: float = 25.0
-    max_sigma_s: float = 0.003
-    try_gain: float = 9.0
-
-
-@dataclass(frozen=True)
-class DynamicInitConfig:
-    """Dynamic initialization (visual-inertial alignment, ``vio.backend.dynamic_init``)
-    on ``window_s`` of keyframes every ``step_s``, using the ``max_tracks`` longest
-    tracks; a refused window grows by ``retry_s`` per attempt up to ``max_window_s``
-    (excitation accumulates), then slides. Its inverse depths are bounded to ``[1/max_depth_m, 10]`` 1/m (the bound
-    makes a window without parallax reveal a wrong velocity), its gyro bias has a prior of
-    ``visual_gyro_bias_sigma`` rad/s about the bias that aligns the IMU with the visual
-    rotations between keyframes (``vio.backend.gyro_init``) when at least
-    ``min_rotation_pairs`` keyframe pairs give one, else of ``gyro_bias_sigma``
-    about zero; its reprojection errors have a Huber kernel at ``huber_px``.
-    A solution is rejected (the pipeline waits for a later window) with fewer than
-    ``min_landmarks`` tracks, a free-gravity norm off by more than ``max_gravity_error``
-    (relative), fewer than ``min_inlier_ratio`` inlier observations, a median inlier
-    reprojection error above ``max_reproj_px``, a velocity standard deviation above
-    ``max_v0_sigma`` m/s, an acceleration varying by less than ``min_excitation`` m/s^2
-    RMS (no scale) unless the window is still (rotation alone explains the tracks within
-    ``max_still_parallax_px`` and ``|v0| <= max_v0_sigma``), a batch mean factor error
-    above ``max_mean_error``, or a batch solution further than ``disagreement_widen``
-    times ``max_v0_disagreement`` m/s / ``max_gravity_disagreement_deg`` from the
-    alignment (between one and ``disagreement_widen`` times, the window is accepted with
-    the disagreement as its roll-pitch and velocity prior sigmas. Generated MH_05 tracks
-    from 40 s into the flight disagree by 0.145 m/s and 1.8 degrees at 1.5 s, each
-    solution about 0.9 degrees from the true gravity: the accelerometer bias (0.14 m/s^2)
-    and the tilt are not yet separable. With 2.0 (``bench_midflight``, 25 excerpts) that
-    window is accepted at 1.5 s instead of 2.0 s (ATE 0.0523 -> 0.0533 m over 31.6 m),
-    MH_03@30 at 1.5 instead of 2.5 s (0.0305 -> 0.0311 m), V2_03@30 at 1.5 instead of
-    2.0 s (0.0155 -> 0.0161 m); the other 22 and seven real MH_05 mono starts unchanged.
-    With an earlier backend, accepting MH_05@40 at 1.5 s had cost 0.095 -> 0.116 m), or a relative standard
-    deviation of the batch window's translation (its metric scale) above
-    ``max_scale_sigma`` (unless the translation is within 3 sigma of zero)."""
-
-    window_s: float = 1.5
-    max_window_s: float = 3.0
-    retry_s: float = 0.5
-    step_s: float = 0.1
-    max_tracks: int = 80
-    min_landmarks: int = 15
-    max_depth_m: float = 30.0
-    gyro_bias_sigma: float = 0.1
-    huber_px: float = 2.0
-    max_gravity_error: float = 0.03
-    min_inlier_ratio: float = 0.8
-    max_reproj_px: float = 2.5
-    max_v0_sigma: float = 0.1
-    min_excitation: float = 0.1
-    max_still_parallax_px: float = 4.0
-    max_mean_error: float = 20.0
-    max_v0_disagreement: float = 0.15
-    max_gravity_disagreement_deg: float = 1.5
-    disagreement_widen: float = 2.0
-    max_scale_sigma: float = 0.2
-    visual_gyro_bias_sigma: float = 0.01
-    min_rotation_pairs: int = 3
-    td: TdSearchConfig = field(default_factory=TdSearchConfig)
-
-
-@dataclass(frozen=True)
-class StereoInitConfig:
-    """Stereo-inertial initialization (``vio.backend.stereo_init``), used first whenever
-    cam1 is present. ``window_s``: frames aligned (every frame, from the first stereo
-    pair); a rejected window grows up to ``max_window_s``, after which its oldest frames
-    are dropped. PnP: inlier threshold ``pnp_px``, at least ``min_inliers`` inliers per
-    frame and ``min_points`` stereo points in the first frame. The linear alignment
-    weights positions by ``pos_sigma_m`` (m) and velocity increments by ``accel_sigma``
-    (m/s^2, the unknown accelerometer bias) times the interval; it is rejected with a
-    gravity norm off by more than ``max_gravity_error`` (relative), a gravity direction
-    sigma above ``max_gravity_sigma_deg`` or a first-velocity sigma above
-    ``max_v0_sigma`` (m/s). The smoother's initial priors are twice the alignment's
-    sigmas, at least ``min_rp_sigma`` (rad) and ``min_vel_sigma`` (m/s)."""
-
-    enabled: bool = True
-    window_s: float = 0.5
-    max_window_s: float = 2.0
-    pnp_px: float = 2.0
-    min_inliers: int = 12
-    min_points: int = 20
-    pos_sigma_m: float = 0.002
-    accel_sigma: float = 0.1
-    max_gravity_error: float = 0.05
-    max_gravity_sigma_deg: float = 1.5
-    max_v0_sigma: float = 0.1
-    min_rp_sigma: float = 0.01
-    min_vel_sigma: float = 0.05
-
-
-@dataclass(frozen=True)
-class InitConfig:
-    """Initialization. Static: the first ``static_window_s`` of IMU must be still
-    (50-ms mean gyro within ``max_gyro_std`` rad/s and accel within ``max_accel_std``
-    m/s^2 of the window mean, and the median feature displacement over the window below
-    ``max_still_flow_px``: a motionless camera's tracks still move by their noise, a median
-    of about 1.7 pixel sigmas (1.1-1.5 px on the 0.7-px generated tracks, where the old 1-px
-    mean never detected the Machine Hall's still start). Otherwise
-    dynamic initialization (``dynamic``, see ``DynamicInitConfig``). With cam1, the
-    stereo initialization (``stereo``, ``StereoInitConfig``) comes first. ``prior_*``: the
-    initial state's priors (position and yaw fix the gauge); ``zupt_sigma`` (m/s):
-    zero-velocity updates while still."""
-
-    static_window_s: float = 0.5
-    max_gyro_std: float = 0.05
-    max_accel_std: float = 0.6
-    max_still_flow_px: float = 2.0
-    dynamic: DynamicInitConfig = field(default_factory=DynamicInitConfig)
-    stereo: StereoInitConfig = field(default_factory=StereoInitConfig)
-    prior_pos_sigma: float = 1e-3
-    prior_yaw_sigma: float = 1e-3
-    prior_rp_sigma: float = 0.02
-    prior_vel_sigma: float = 0.05
-    prior_gyro_bias_sigma: float = 0.01
-    prior_accel_bias_sigma: float = 0.2
-    zupt_sigma: float = 0.01
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("max_interval_s",))
 
 
 @dataclass(frozen=True)
@@ -240,6 +112,13 @@ class VisionConfig:
     reanchor_prior_sigma: float = 0.0
     farewell_poses: bool = True
 
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("pixel_sigma", "kernel_k", "outlier_px", "td_velocity_max", "max_landmarks",
+                                     "min_depth_m", "max_depth_m", "default_depth_m", "max_stereo_depth_m",
+                                     "max_rejections", "point_prior_sigma_m", "reanchor_sigma"))
+        if not self.max_depth_m > self.min_depth_m:
+            raise ValueError("VisionConfig.max_depth_m must exceed min_depth_m")
+
 
 @dataclass(frozen=True)
 class CalibConfig:
@@ -290,6 +169,10 @@ class CalibConfig:
     td_feedback_after_s: float = 10.0
     td_reanchor_s: float = 0.005
     td_reanchor_sigma_s: float = 0.001
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("extrinsic_rot_sigma", "extrinsic_pos_sigma", "td_sigma", "fixed_sigma",
+                                     "td_reanchor_sigma_s"))
 
 
 @dataclass(frozen=True)
@@ -360,6 +243,10 @@ class SolverConfig:
     extra_iterations: int = 0
     incremental_padding: bool = True
     outlier_update: Literal["now", "next_frame"] = "now"
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("lag_s", "relinearize_threshold", "relinearize_skip", "td_relinearize_threshold",
+                                     "point_relinearize_threshold"))
 
 
 @dataclass(frozen=True)

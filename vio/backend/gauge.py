@@ -35,6 +35,8 @@ from typing import Callable
 import gtsam
 import numpy as np
 
+from vio.config import check_ranges
+
 
 @dataclass(frozen=True)
 class GaugeConfig:
@@ -46,6 +48,9 @@ class GaugeConfig:
     position_m: float = 0.1
     yaw_rad: float = 0.01
     free_rad: float = 1e3
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("position_m", "yaw_rad", "free_rad"))
 
 
 def gauge_prior(key: int, T_w_b: gtsam.Pose3, cfg: GaugeConfig) -> gtsam.PriorFactorPose3:

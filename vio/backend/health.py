@@ -46,6 +46,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from vio.config import check_ranges
+
 
 @dataclass(frozen=True)
 class HealthConfig:
@@ -65,6 +67,11 @@ class HealthConfig:
     restart_accel_bias_sigma: float = 0.05
     restart_gyro_bias_sigma: float = 0.003
     reinit: bool = True
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("max_speed", "bias_k", "max_imu_chi2", "inlier_keyframes", "restart_vel_sigma",
+                                     "restart_rp_sigma", "restart_accel_bias_sigma", "restart_gyro_bias_sigma"),
+                     fractions=("min_inlier_ratio",))
 
 
 @dataclass(frozen=True)
@@ -92,6 +99,10 @@ class BridgeConfig:
     pred_gate_px: float = 10.0
     outlier_scale: float = 2.0
 
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("accel_density", "gyro_density", "step_s", "pnp_min_inliers", "pred_gate_px",
+                                     "outlier_scale"))
+
 
 @dataclass(frozen=True)
 class RealignConfig:
@@ -115,6 +126,10 @@ class RealignConfig:
     apply_sigma_deg: float = 1.0
     scale_sigma: float = 0.1
     gyro_sigma: float = 0.002
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("collect_s", "max_s", "pos_sigma_m", "accel_bias_sigma", "max_sigma_deg",
+                                     "apply_sigma_deg", "scale_sigma", "gyro_sigma"))
 
 
 def outlier_limit_px(est) -> float:

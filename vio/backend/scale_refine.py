@@ -64,6 +64,8 @@ from typing import Literal
 import gtsam
 import numpy as np
 
+from vio.config import check_ranges
+
 NAN = float("nan")
 
 
@@ -173,6 +175,11 @@ class RefineConfig:
     min_depth_m: float = 0.2
     max_depth_m: float = 60.0
     scale_prior_sigma: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("every_s", "pos_sigma_m", "accel_bias_sigma", "iterations", "max_scale_sigma",
+                                     "max_gravity_sigma_deg", "ba_iterations", "min_obs", "max_tracks",
+                                     "min_depth_m", "max_depth_m"))
 
 
 @dataclass(frozen=True)
