@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from vio.config import check_ranges
 from vio.io.types import ImuData
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,10 @@ class ImuScreenConfig:
     accel_floor: float = 1.0
     gyro_floor: float = 0.1
     max_warnings: int = 20
+
+    def __post_init__(self) -> None:
+        check_ranges(self, positive=("max_gap_periods", "half_window", "spread_window", "spike_k",
+                                     "accel_floor", "gyro_floor"))
 
 
 def _hampel(x: np.ndarray, lo: int, hi: int, h: int, s: int, floor: float, k: float
