@@ -184,13 +184,13 @@ def _mh05_window(first: int, n: int = 31):
     """The real MH_05 images ``first .. first + n - 1`` through mono's KLT front end,
     aligned with mono's defaults: (data, first packet, mono config, AlignResult)."""
     from conftest import shared
-    from vio.io.euroc import load_euroc
-    from vio.run import _image_files, default_config
+    from vio.io.euroc import image_files, load_euroc
+    from vio.run import default_config
     from vio.tracking import ImageStage
     data = load_euroc(shared("euroc_MH_05_mono_15s"))
     cfg = default_config("mono")
     stage = ImageStage(data.cam0.calib, None, cfg.frontend)
-    files = _image_files(data, False, first + n)[first:]
+    files = image_files(data, False, data.cam0.t_ns[first:first + n])
     pk = [stage(p) for p in packets(data.imu, data.cam0.t_ns[first:first + n], 0.0, image_files=files)]
     res = align(init_window(pk, cfg.backend.init.dynamic.step_s), data.cam0.calib, data.imu_calib,
                 cfg.backend)

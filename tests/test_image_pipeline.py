@@ -71,13 +71,13 @@ def test_worker_process_front_end_is_identical(sim_stereo):
     """The KLT stage in a worker process (``vio.overlap``) hands the backend exactly
     the packets the in-process stage gives: same ids, same coordinates, bit for bit."""
     from vio.overlap import overlapped
-    from vio.run import _image_files
+    from vio.io.euroc import image_files
     from vio.sync import packets
     from vio.tracking import ImageStage
     d = sim_stereo
     args = (d.cam0.calib, d.cam1.calib, PipelineConfig().frontend)
     stamps = d.cam0.t_ns[:25]
-    files = _image_files(d, True, len(stamps))
+    files = image_files(d, True, stamps)
     local = ImageStage(*args)
     expected = [local(p) for p in packets(d.imu, stamps, 0.0, image_files=files)]
     got = list(overlapped(ImageStage, args, packets(d.imu, stamps, 0.0, image_files=files), depth=3,
@@ -94,12 +94,12 @@ def test_worker_process_reports_bad_image(sim_stereo, tmp_path):
     the results of the packets before it (the stereo thread's included)."""
     from vio.errors import DataError
     from vio.overlap import overlapped
-    from vio.run import _image_files
+    from vio.io.euroc import image_files
     from vio.sync import packets
     from vio.tracking import ImageStage
     d = sim_stereo
     stamps = d.cam0.t_ns[:6]
-    files = _image_files(d, True, len(stamps))
+    files = image_files(d, True, stamps)
     files[4] = (tmp_path / "gone.png", files[4][1])
     it = overlapped(ImageStage, (d.cam0.calib, d.cam1.calib, None),
                     packets(d.imu, stamps, 0.0, image_files=files))

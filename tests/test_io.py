@@ -178,3 +178,31 @@ def test_groundtruth_bad_quaternion(tmp_path):
     lines[4] = ",".join(parts)
     path.write_text("\n".join(lines) + "\n")
     _expect(root, "state_groundtruth_estimate0/data.csv", 5, "quaternion norm")
+
+
+def test_missing_images_drop_their_frames_with_a_warning(tmp_path):
+    """An image data.csv lists but the folder lacks is a dropped frame (warning naming the
+    csv line), not a failed run; a stereo pair that lost one image is dropped whole; a
+    camera with no image at all is an error for cam0 and unused for cam1."""
+    from vio.io.euroc import image_files, stereo_stamps
+    root = tmp_path / "s"
+    shutil.copytree(shared("euroc_V1_01_static_stereo"), root)
+    names0 = sorted(p.name for p in (root / "mav0/cam0/data").iterdir())
+    names1 = sorted(p.name for p in (root / "mav0/cam1/data").iterdir())
+    (root / "mav0/cam0/data" / names0[10]).unlink()
+    (root / "mav0/cam1/data" / names1[20]).unlink()
+    d = load_euroc(root)
+    assert len(d.cam0) == 94 and len(d.cam1) == 94
+    assert any("cam0/data.csv:12: 1 of 95 listed image(s) missing" in w for w in d.warnings)
+    stamps = stereo_stamps(d, d.cam0.t_ns)
+    assert len(stamps) == 93 and int(names1[20][:-4]) not in stamps
+    pairs = image_files(d, True, stamps)
+    assert all(a.is_file() and b.is_file() and a.name == b.name for a, b in pairs)
+    for p in (root / "mav0/cam1/data").iterdir():
+        p.unlink()
+    d = load_euroc(root)
+    assert d.cam1.files == () and any("the camera's images are not used" in w for w in d.warnings)
+    for p in (root / "mav0/cam0/data").iterdir():
+        p.unlink()
+    with pytest.raises(DataError, match="none of its 95 images exists"):
+        load_euroc(root)

@@ -16,7 +16,7 @@ import numpy as np
 
 from vio.config import from_dict, read_yaml
 from vio.conventions import quat_wxyz_from_rot
-from vio.io.euroc import EurocDataset
+from vio.io.euroc import EurocDataset, image_files, stereo_stamps
 from vio import overlap
 from vio.modes import KLT_WORKER_MODES, MODE_DEFAULTS, merged
 from vio.pipeline import FrameOutput, InitInfo, Pipeline, PipelineConfig
@@ -112,18 +112,6 @@ def resolve_mode(data: EurocDataset, mode: str) -> str:
     return mode
 
 
-def _image_files(data: EurocDataset, stereo: bool, n: int) -> list[tuple]:
-    if not stereo:
-        return [(f,) for f in data.cam0.files[:n]]
-    right = dict(zip(data.cam1.t_ns.tolist(), data.cam1.files))
-    out = []
-    for t, f in zip(data.cam0.t_ns[:n].tolist(), data.cam0.files[:n]):
-        if t not in right:
-            raise ValueError(f"{data.root}: cam0 frame {t} has no cam1 image with the same stamp")
-        out.append((f, right[t]))
-    return out
-
-
 def td_feedback(pipe: Pipeline, cfg: PipelineConfig) -> Callable[[], float] | None:
     """The td the sync layer applies to the next frame: the estimator's estimate once it
     differs from the applied one by ``backend.calib.td_feedback_s``, in steps of at most
@@ -163,7 +151,7 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
     # feedback, which brings the keyframe times to the exposure times; the KLT modes do not
     # (tried: renders moved both ways, benchmarks/README.md, td in the photometric modes)
     timed = mode in PHOTOMETRIC_MODES and cfg.direct.points.exposure_td
-    it = packets(data.imu, stamps, cfg.td_s, image_files=_image_files(data, stereo, len(stamps)),
+    it = packets(data.imu, stamps, cfg.td_s, image_files=image_files(data, stereo, stamps),
                  **screen, td_source=td_feedback(pipe, cfg) if timed else None)
     from vio.tracking import ImageStage
     args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
@@ -208,6 +196,8 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     cfg = default_config(mode) if cfg is None else cfg
     cam1 = data.cam1.calib if mode in STEREO_MODES else None
     stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
+    if mode in STEREO_MODES:
+        stamps = stereo_stamps(data, stamps)
     early = _early_stream(data, cfg, mode, stamps)
     if cfg.live:
         if mode in PHOTOMETRIC_MODES:

@@ -170,8 +170,46 @@ def read_camera(cam_dir: Path, imu: ImuData, options: LoadOptions, warnings: lis
         warnings.append(f"{csv}: dropped {outside.size} frame(s) outside the IMU span")
         keep = np.setdiff1d(np.arange(len(t_ns)), outside)
         t_ns, names = t_ns[keep], [names[k] for k in keep]
-    files = tuple(cam_dir / "data" / n for n in names) if (cam_dir / "data").is_dir() else ()
-    return CameraStream(calib, t_ns, files), all_t
+    if not (cam_dir / "data").is_dir():
+        return CameraStream(calib, t_ns, ()), all_t
+    files = [cam_dir / "data" / n for n in names]
+    missing = [i for i, f in enumerate(files) if not f.is_file()]
+    if missing:   # a frame whose image was never written: dropped, as a frame the camera dropped
+        row = int(lines[np.searchsorted(all_t, t_ns[missing[0]])])
+        if len(missing) == len(files):
+            what = f"none of its {len(files)} images exists under {cam_dir / 'data'} (first: {names[missing[0]]})"
+            if required:
+                raise DataError(csv, what, row)
+            warnings.append(f"{csv}:{row}: {what}: the camera's images are not used")
+            return CameraStream(calib, t_ns, ()), all_t
+        warnings.append(f"{csv}:{row}: {len(missing)} of {len(files)} listed image(s) missing "
+                        f"(first: {names[missing[0]]}): those frames are dropped")
+        gone = set(missing)
+        keep = [i for i in range(len(files)) if i not in gone]
+        t_ns, files = t_ns[keep], [files[i] for i in keep]
+    return CameraStream(calib, t_ns, tuple(files)), all_t
+
+
+def image_files(data: EurocDataset, stereo: bool, stamps: np.ndarray) -> list[tuple]:
+    """The image file(s) of each camera stamp in ``stamps`` (cam0, then cam1 in stereo)."""
+    left = dict(zip(data.cam0.t_ns.tolist(), data.cam0.files))
+    if not stereo:
+        return [(left[t],) for t in stamps.tolist()]
+    right = dict(zip(data.cam1.t_ns.tolist(), data.cam1.files))
+    return [(left[t], right[t]) for t in stamps.tolist()]
+
+
+def stereo_stamps(data: EurocDataset, stamps: np.ndarray) -> np.ndarray:
+    """``stamps`` without the cam0 frames that have no cam1 image of the same stamp (a pair
+    with one image dropped: skipped with a warning; none left: ``DataError``)."""
+    both = np.isin(stamps, data.cam1.t_ns)
+    if both.all():
+        return stamps
+    if not both.any():
+        raise DataError(data.root, "no cam0 frame has a cam1 image with the same stamp")
+    log.warning("%s: %d cam0 frame(s) without a cam1 image of the same stamp (first %d): those "
+                "frames are dropped", data.root, int((~both).sum()), int(stamps[~both][0]))
+    return stamps[both]
 
 
 def _read_image_list(csv: Path) -> tuple[np.ndarray, list[str], np.ndarray]:
