@@ -287,6 +287,40 @@ def test_dropped_camera_frames(tmp_path):
     assert ate <= 0.04, ate
 
 
+def test_a_dropped_packet_carries_its_imu_to_the_next_frame(tmp_path, caplog):
+    """A frame the image stage could not use (``FramePacket.dropped``: an image that does
+    not decode) gives no output and a warning; its IMU is preintegrated with the next
+    frame's, so the run is the run of the same data without that frame."""
+    import dataclasses
+
+    from vio.inject import drop_frames
+    from vio.io.euroc import load_euroc
+    from vio.pipeline import Pipeline
+    from vio.run import default_config
+    root = _stretch(tmp_path, "clean")
+    data = load_euroc(root)
+    cfg = default_config("features")
+    drop = 60
+
+    def run(pkts):
+        pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
+        return [o for p in pkts for o in pipe.process(p)]
+
+    pkts = list(packets(data.imu, data.cam0.t_ns, 0.0, data.features))
+    pkts[drop] = dataclasses.replace(pkts[drop], dropped="an image that does not decode")
+    with caplog.at_level(logging.WARNING, logger="vio.pipeline"):
+        outs = run(pkts)
+    assert "frame dropped (an image that does not decode)" in caplog.text
+    assert pkts[drop].t_ns not in {o.t_ns for o in outs} and pkts[drop + 1].t_ns in {o.t_ns for o in outs}
+    t_drop = (pkts[drop].t_ns - data.imu.t_ns[0]) * 1e-9
+    assert drop_frames(root, t_drop - 0.01, 0.02) == 1     # the same data without that frame
+    d2 = load_euroc(root)
+    ref = run(packets(d2.imu, d2.cam0.t_ns, 0.0, d2.features))
+    assert [o.t_ns for o in ref] == [o.t_ns for o in outs]
+    gap = max(np.linalg.norm(a.T_w_b.translation() - b.T_w_b.translation()) for a, b in zip(outs, ref))
+    assert gap < 1e-6, gap
+
+
 def test_clean_stretch_raises_no_fault_and_cli_exits_zero_on_faults(tmp_path, capsys):
     from vio.cli import main
     from vio.inject import imu_gap, imu_spike

@@ -89,22 +89,32 @@ def test_worker_process_front_end_is_identical(sim_stereo):
         assert a.images == ()   # the images stay in the worker
 
 
-def test_worker_process_reports_bad_image(sim_stereo, tmp_path):
-    """A missing image inside the worker surfaces as the same one-line DataError, after
-    the results of the packets before it (the stereo thread's included)."""
-    from vio.errors import DataError
+def test_worker_process_drops_unreadable_images_and_reports_bad_ones(sim_stereo, tmp_path):
+    """Inside the worker, an image that does not decode marks its packet ``dropped`` (the
+    pipeline carries its IMU over, ``Pipeline.process``) and the next frame is tracked
+    from the last good one; an image of the wrong size is bad input: the same one-line
+    error, after the results of the packets before it (the stereo thread's included)."""
+    import cv2
     from vio.overlap import overlapped
     from vio.io.euroc import image_files
     from vio.sync import packets
     from vio.tracking import ImageStage
     d = sim_stereo
-    stamps = d.cam0.t_ns[:6]
+    stamps = d.cam0.t_ns[:7]
     files = image_files(d, True, stamps)
-    files[4] = (tmp_path / "gone.png", files[4][1])
+    (tmp_path / "gone.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((48, 64), np.uint8))
+    files[3] = (tmp_path / "gone.png", files[3][1])
+    files[5] = (small, files[5][1])
     it = overlapped(ImageStage, (d.cam0.calib, d.cam1.calib, None),
                     packets(d.imu, stamps, 0.0, image_files=files))
     got = []
-    with pytest.raises(DataError, match=r"gone\.png: image missing or unreadable"):
+    with pytest.raises(ValueError, match="calibrated for"):
         for pkt in it:
             got.append(pkt)
-    assert [p.index for p in got] == [0, 1, 2, 3] and all(len(p.features.ids) for p in got)
+    assert [p.index for p in got] == [0, 1, 2, 3, 4]
+    assert "gone.png: image missing or unreadable" in got[3].dropped and got[3].features is None
+    assert all(len(p.features.ids) and not p.dropped for p in got[:3] + got[4:])
+    kept = set(got[2].features.ids.tolist())      # frame 4 tracked on from frame 2
+    assert len(kept & set(got[4].features.ids.tolist())) > 0.5 * len(kept)

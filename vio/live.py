@@ -20,6 +20,7 @@ thread for 0.47 s), which is why the backend needs its own process, not a thread
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import logging
 import queue
@@ -204,5 +205,4 @@ class LivePipeline:
 
 def _light(pkt: FramePacket) -> FramePacket:
     """The packet without decoded images (the worker needs features and IMU only)."""
-    return pkt if not pkt.images else FramePacket(pkt.index, pkt.t_ns, pkt.stamp_ns, pkt.imu, pkt.features,
-                                                  pkt.image_files, (), pkt.imu_ahead)
+    return pkt if not pkt.images else dataclasses.replace(pkt, images=())   # IMU gaps, drops kept

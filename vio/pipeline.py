@@ -28,7 +28,7 @@ from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 from vio.memory import trim_heap, tune_heap
 from vio.reinit import Reinit
-from vio.sync import FramePacket
+from vio.sync import FramePacket, carry_imu
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +124,7 @@ class Pipeline:
         self.init_info: InitInfo | None = None
         self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
         self.imu_dropped = 0
+        self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
 
     # -------------------------------------------------------------- helpers
     def _window_imu(self):
@@ -164,6 +165,13 @@ class Pipeline:
         initializing, this frame's once initialized, and at a dynamic initialization
         every frame of the aligned window (replayed through the estimator)."""
         t0 = time.perf_counter()
+        if pkt.dropped:       # no vision for this frame: its IMU goes with the next one
+            log.warning("t=%d ns: frame dropped (%s); its IMU carries over to the next frame", pkt.t_ns,
+                        pkt.dropped)
+            self._held = pkt if self._held is None else carry_imu(self._held, pkt)
+            return []
+        if self._held is not None:
+            pkt, self._held = carry_imu(self._held, pkt), None
         ic = self.cfg.backend.init
         self._count_faults(pkt)
         self._recent.append(pkt)

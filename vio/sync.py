@@ -35,6 +35,7 @@ import enum
 import logging
 import math
 from collections import deque
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
@@ -42,6 +43,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from vio.faults import ImuScreen, ImuScreenConfig
+from vio.imu import concat
 from vio.io.types import FeatureFrame, ImuData
 
 log = logging.getLogger(__name__)
@@ -66,7 +68,9 @@ class FramePacket:
     ``images``: per-camera files or arrays (cam0 first). ``imu_gaps``: (last sample
     before, first sample after) in ns of each IMU gap the interval ``[t_prev, t_ns]``
     overlaps (``imu`` is not to be preintegrated then); ``imu_dropped``: impossible
-    samples dropped in that interval (``vio.faults``).
+    samples dropped in that interval (``vio.faults``). ``dropped``: why the frame's
+    vision could not be used (an image that does not decode); its IMU then carries over
+    to the next frame (:func:`carry_imu`).
     """
 
     index: int
@@ -79,6 +83,7 @@ class FramePacket:
     imu_ahead: ImuData | None = None
     imu_gaps: tuple[tuple[int, int], ...] = ()
     imu_dropped: int = 0
+    dropped: str = ""
 
     @property
     def dt_s(self) -> float:
@@ -232,6 +237,13 @@ class Synchronizer:
         i = int(np.searchsorted(self._t, t_keep, side="right")) - 1
         if i > 0:
             self._t, self._w, self._a = self._t[i:], self._w[i:], self._a[i:]
+
+
+def carry_imu(held: FramePacket, pkt: FramePacket) -> FramePacket:
+    """``pkt`` with the IMU of ``held``, a dropped frame just before it, prepended: the
+    interval then runs from the last frame used, as if the camera had dropped the frame."""
+    return dataclasses.replace(pkt, imu=concat([held.imu, pkt.imu]), imu_gaps=held.imu_gaps + pkt.imu_gaps,
+                               imu_dropped=held.imu_dropped + pkt.imu_dropped)
 
 
 def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,

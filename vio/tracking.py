@@ -16,6 +16,8 @@ import numpy as np
 from vio.frontend import Frontend
 from vio.frontend.camera import camera_rotation
 from vio.frontend.config import FrontendConfig
+from vio.errors import DataError
+from vio.imu import concat
 from vio.io.euroc import read_image
 from vio.io.types import CameraCalib, ImuData
 from vio.sync import FramePacket
@@ -42,15 +44,20 @@ class ImageStage:
         self.frontend = Frontend(cam0, cam1, cfg)
         self._T_b_c = cam0.T_b_c.matrix()
         self._first = True
+        self._skipped: list[ImuData] = []   # IMU of dropped frames since the last tracked one
         self._pool: ThreadPoolExecutor | None = None
 
     def load(self, pkt: FramePacket) -> FramePacket:
         """``pkt`` with its images decoded (``vio.overlap``'s worker runs this a packet
-        ahead, in a thread, while the previous packet is tracked)."""
+        ahead, in a thread, while the previous packet is tracked); an image that does not
+        decode marks the frame ``dropped`` (``Pipeline.process`` carries its IMU over)."""
         if pkt.images or not pkt.image_files:
             return pkt
         files = pkt.image_files[:2 if self.stereo else 1]
-        return dataclasses.replace(pkt, images=tuple(read_image(p) for p in files))
+        try:
+            return dataclasses.replace(pkt, images=tuple(read_image(p) for p in files))
+        except DataError as exc:
+            return dataclasses.replace(pkt, dropped=str(exc))
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
         return self._finish(*self._track(pkt))
@@ -69,15 +76,22 @@ class ImageStage:
         return self._pool.submit(self._finish, *args)
 
     def _track(self, pkt: FramePacket) -> tuple:
-        imgs = self.load(pkt).images
+        pkt = self.load(pkt)
+        if pkt.dropped:   # the next frame tracks from the last one tracked, rotation included
+            self._skipped.append(pkt.imu)
+            return pkt, None, None
+        imgs = pkt.images
         if not imgs:
             raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
-        R = None if self._first else camera_rotation(gyro_rotation(pkt.imu), self._T_b_c)
+        imu, self._skipped = concat([*self._skipped, pkt.imu]), []
+        R = None if self._first else camera_rotation(gyro_rotation(imu), self._T_b_c)
         self._first = False
         img1 = imgs[1] if self.stereo and len(imgs) > 1 else None
         return pkt, self.frontend.track(pkt.t_ns, imgs[0], R), img1
 
     def _finish(self, pkt: FramePacket, mono, img1: np.ndarray | None) -> FramePacket:
+        if mono is None:
+            return dataclasses.replace(pkt, features=None, images=())
         tf = self.frontend.match(mono, img1)
         fr = tf.to_feature_frame(0)
         if self.stereo:
