@@ -51,7 +51,7 @@ class ImageStage:
         """``pkt`` with its images decoded (``vio.overlap``'s worker runs this a packet
         ahead, in a thread, while the previous packet is tracked); an image that does not
         decode marks the frame ``dropped`` (``Pipeline.process`` carries its IMU over)."""
-        if pkt.images or not pkt.image_files:
+        if pkt.images or not pkt.image_files or pkt.dropped:
             return pkt
         files = pkt.image_files[:2 if self.stereo else 1]
         try:
