@@ -151,6 +151,7 @@ def test_malformed_feature_rows(tmp_path, line, new, words):
      "not a rigid transform"),
     ("distortion_model: radial-tangential", "distortion_model: fisheye62",
      "distortion_model 'fisheye62'"),
+    ("rate_hz: 20", "rate_hz: abc", "rate_hz must be a positive number, found 'abc'"),
 ])
 def test_wrong_camera_calibration(tmp_path, old, new, words):
     root = _copy(tmp_path)
@@ -161,12 +162,16 @@ def test_wrong_camera_calibration(tmp_path, old, new, words):
     _expect(root, "cam0/sensor.yaml", None, words)
 
 
-def test_wrong_imu_calibration(tmp_path):
+@pytest.mark.parametrize("old,new,words", [
+    ("gyroscope_noise_density: 1.6968e-04", "gyroscope_noise_density: -1", "must be a positive number"),
+    ("rate_hz: 200", "rate_hz: -5", "rate_hz must be a positive number, found -5"),
+])
+def test_wrong_imu_calibration(tmp_path, old, new, words):
     root = _copy(tmp_path)
     path = root / "mav0/imu0/sensor.yaml"
-    path.write_text(path.read_text().replace("gyroscope_noise_density: 1.6968e-04",
-                                             "gyroscope_noise_density: -1"))
-    _expect(root, "imu0/sensor.yaml", None, "must be a positive number")
+    assert old in path.read_text()
+    path.write_text(path.read_text().replace(old, new))
+    _expect(root, "imu0/sensor.yaml", None, words)
 
 
 def test_groundtruth_bad_quaternion(tmp_path):

@@ -68,8 +68,11 @@ def read_camera_yaml(path: Path, name: str = "cam0") -> CameraCalib:
     line_time = float(data.get("rolling_shutter_line_time_s", 0.0))
     if not (0.0 <= line_time < 1e-3):
         raise ConfigError(f"{path}: rolling_shutter_line_time_s {line_time} out of range [0, 1e-3)")
+    rate = data.get("rate_hz", 20.0)
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < float("inf"):
+        raise ConfigError(f"{path}: rate_hz must be a positive number, found {rate!r}")
     return CameraCalib(pose_from_matrix(T), (fx, fy, cx, cy), model, dist, (w, h),
-                       float(data.get("rate_hz", 20.0)), line_time, name)
+                       float(rate), line_time, name)
 
 
 def load_camera(path: Path, name: str = "cam0") -> CameraCalib:
@@ -104,5 +107,8 @@ def read_imu_yaml(path: Path) -> ImuCalib:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
             raise ConfigError(f"{path}: {k} must be a positive number, found {v!r}")
         ranges.append(float(v))
-    return ImuCalib(*vals, rate_hz=float(data.get("rate_hz", 200.0)), T_b_s=pose_from_matrix(T),
+    rate = data.get("rate_hz", 200.0)
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < float("inf"):
+        raise ConfigError(f"{path}: rate_hz must be a positive number, found {rate!r}")
+    return ImuCalib(*vals, rate_hz=float(rate), T_b_s=pose_from_matrix(T),
                     accel_range=ranges[0], gyro_range=ranges[1])
