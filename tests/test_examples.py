@@ -59,3 +59,13 @@ def test_signed_and_optional_values_stay_allowed(tmp_path):
     cfg = load_config(path)
     assert cfg.td_s == -0.012 and cfg.backend.solver.point_relinearize_threshold is None
     assert cfg.backend.health.max_speed == float("inf")
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "x"])
+def test_frame_counts_on_the_command_line_must_be_positive(capsys, value):
+    """``--max-frames 0`` ran every frame and ``-5`` all but the last five (a slice);
+    both are now usage errors."""
+    from vio.cli import main
+    with pytest.raises(SystemExit) as err:
+        main(["run", "--demo", "--max-frames", value])
+    assert err.value.code == 2 and "argument --max-frames" in capsys.readouterr().err

@@ -16,6 +16,7 @@ from vio.threads import one_blas_thread
 
 one_blas_thread()   # before numpy loads: one BLAS thread per process (vio.threads)
 
+from vio.config import positive_int  # noqa: E402
 from vio.errors import ConfigError, DataError  # noqa: E402
 
 
@@ -28,7 +29,7 @@ def _add_run(sub) -> None:
     p.add_argument("--config", type=Path, help="YAML file overriding the defaults")
     p.add_argument("--out", type=Path, help="TUM trajectory output (online estimates)")
     p.add_argument("--smoothed", type=Path, help="also write the window-smoothed trajectory")
-    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--max-frames", type=positive_int, default=None, help="only the first N frames")
     p.add_argument("--mode", choices=["auto", "features", "stereo", "mono", "direct", "hybrid"],
                    default="auto")
     p.add_argument("--td", type=float, default=None, help="initial camera-IMU offset td [s]")
@@ -43,7 +44,7 @@ def _add_run(sub) -> None:
     p.add_argument("--smooth", type=Path, help="write a Kalman-smoothed planar track (TUM)")
     p.add_argument("--rerun", action="store_true", help="stream to a Rerun viewer")
     p.add_argument("--rrd", type=Path, help="record a Rerun .rrd file")
-    p.add_argument("--viz-image-every", type=int, default=3, metavar="N",
+    p.add_argument("--viz-image-every", type=positive_int, default=3, metavar="N",
                    help="Rerun: log the camera images every N frames (default 3)")
     p.add_argument("--viz-jpeg-quality", type=int, default=60, metavar="Q",
                    help="Rerun: JPEG quality 1-100 of the logged images, 0 for raw (default 60)")

@@ -7,6 +7,7 @@ keys and wrong types with a ``ConfigError`` naming the source and the key path.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import types
 import typing
@@ -87,6 +88,17 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected a string, got {value!r}")
         return value
     return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1 (a clear usage error otherwise)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {n}")
+    return n
 
 
 def check_ranges(obj: Any, positive: tuple[str, ...] = (), fractions: tuple[str, ...] = (),

@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vio.config import positive_int
 from vio.errors import DataError
 from vio.io.euroc import EurocDataset, LoadOptions, load_euroc, read_image
 from vio.io.kalibr import write_camchain, write_kalibr_imu
@@ -145,7 +146,7 @@ def add_parser(sub) -> None:
     p.add_argument("folder", type=Path, help="ASL/EuRoC folder with images")
     p.add_argument("out", type=Path, help="OUT.bag (ROS 1) or a new folder (ROS 2)")
     p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="ROS 2 storage")
-    p.add_argument("--max-frames", type=int, default=None, help="only the first N frames (IMU cropped)")
+    p.add_argument("--max-frames", type=positive_int, default=None, help="only the first N frames (IMU cropped)")
     p.add_argument("--compressed", action="store_true", help="sensor_msgs/CompressedImage (png)")
     p.add_argument("--kalibr", type=Path, help="also write camchain.yaml and imu.yaml into this folder")
 
