@@ -74,7 +74,7 @@ def config_from_args(args: argparse.Namespace) -> SimConfig:
         data["render_images"] = False
     if data.get("motion") == "constant_velocity" and "room_size" not in data:
         data["room_size"] = _pass_room(data)
-    return from_dict(SimConfig, data, str(args.config) if getattr(args, "config", None) else "vio sim")
+    return from_dict(SimConfig, data, str(args.config) if getattr(args, "config", None) else "command line")
 
 
 def _pass_room(data: dict) -> list[float]:

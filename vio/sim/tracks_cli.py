@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         res = generate_tracks(args.src, args.out, cfg)
     except (ConfigError, DataError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"vio tracks: error: {exc}", file=sys.stderr)
         return 2
     fpf, tl = res.features_per_frame, res.track_lengths
     print(f"wrote {res.out / 'mav0'}: {len(res.t_ns)} frames "
