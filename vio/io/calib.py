@@ -44,6 +44,17 @@ def _numbers(data: dict, key: str, n: int | None, path: Path) -> tuple[float, ..
     return vals
 
 
+def _positive(data: dict, key: str, default: float | None, path: Path, inf_ok: bool = False) -> float:
+    """``data[key]`` (``default`` when absent; None: required) as a number > 0, finite
+    unless ``inf_ok``; otherwise a ``ConfigError`` naming ``path`` and ``key``."""
+    if key not in data and default is None:
+        raise ConfigError(f"{path}: missing {key}")
+    v = data.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v > 0 and (inf_ok or v < float("inf"))):
+        raise ConfigError(f"{path}: {key} must be a positive number, found {v!r}")
+    return float(v)
+
+
 def read_camera_yaml(path: Path, name: str = "cam0") -> CameraCalib:
     """Camera calibration from an EuRoC ``sensor.yaml``. Accepts the extra key
     ``rolling_shutter_line_time_s`` written by the simulator."""
@@ -68,11 +79,8 @@ def read_camera_yaml(path: Path, name: str = "cam0") -> CameraCalib:
     line_time = float(data.get("rolling_shutter_line_time_s", 0.0))
     if not (0.0 <= line_time < 1e-3):
         raise ConfigError(f"{path}: rolling_shutter_line_time_s {line_time} out of range [0, 1e-3)")
-    rate = data.get("rate_hz", 20.0)
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < float("inf"):
-        raise ConfigError(f"{path}: rate_hz must be a positive number, found {rate!r}")
     return CameraCalib(pose_from_matrix(T), (fx, fy, cx, cy), model, dist, (w, h),
-                       float(rate), line_time, name)
+                       _positive(data, "rate_hz", 20.0, path), line_time, name)
 
 
 def load_camera(path: Path, name: str = "cam0") -> CameraCalib:
@@ -92,23 +100,9 @@ def read_imu_yaml(path: Path) -> ImuCalib:
         raise ConfigError(f"{path}: not an IMU sensor.yaml")
     keys = ("gyroscope_noise_density", "gyroscope_random_walk",
             "accelerometer_noise_density", "accelerometer_random_walk")
-    vals = []
-    for k in keys:
-        if k not in data:
-            raise ConfigError(f"{path}: missing {k}")
-        v = data[k]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0:
-            raise ConfigError(f"{path}: {k} must be a positive number, found {v!r}")
-        vals.append(float(v))
+    vals = [_positive(data, k, None, path) for k in keys]
     T = _matrix4(data, "T_BS", path) if "T_BS" in data else np.eye(4)
-    ranges = []
-    for k in ("accelerometer_range", "gyroscope_range"):   # optional (not in EuRoC's files)
-        v = data.get(k, float("inf"))
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-            raise ConfigError(f"{path}: {k} must be a positive number, found {v!r}")
-        ranges.append(float(v))
-    rate = data.get("rate_hz", 200.0)
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < float("inf"):
-        raise ConfigError(f"{path}: rate_hz must be a positive number, found {rate!r}")
-    return ImuCalib(*vals, rate_hz=float(rate), T_b_s=pose_from_matrix(T),
+    ranges = [_positive(data, k, float("inf"), path, inf_ok=True)   # optional (not in EuRoC's files)
+              for k in ("accelerometer_range", "gyroscope_range")]
+    return ImuCalib(*vals, rate_hz=_positive(data, "rate_hz", 200.0, path), T_b_s=pose_from_matrix(T),
                     accel_range=ranges[0], gyro_range=ranges[1])
