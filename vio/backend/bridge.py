@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from factors.motion_prior import motion_prior_factor
-from vio.backend.graph import B, V, X
+from vio.backend.graph import B, V, X, imu_factor
 from vio.backend.stereo_init import pnp_pose
 from vio.io.types import FeatureFrame
 
@@ -60,6 +60,30 @@ def gyro_rotation_factor(k0: int, k1: int, pim: gtsam.PreintegratedCombinedMeasu
     sig = np.sqrt(np.maximum(c, 0.0) + (bias_sigma * dt) ** 2)
     noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[sig, np.full(3, 1e3)])
     return gtsam.BetweenFactorPose3(X(k0), X(k1), gtsam.Pose3(pim.deltaRij(), np.zeros(3)), noise)
+
+
+def motion_factors(est, k0: int, k1: int, t_ns: int) -> tuple[list, bool]:
+    """What ties the ``Estimator`` ``est``'s keyframe k1 to k0: the IMU factor, or across
+    an IMU gap and while the re-alignment holds the IMU back (``held``) the motion prior and
+    bias walk of :func:`bridge_factors` (with the gyro's relative attitude once the IMU is
+    back). Counts the bridged interval and ends the bridge in ``est``."""
+    bridged = est._bridge_t is not None
+    held = est.realign.holding(bridged, est.kf_t[k0], t_ns)   # vio.backend.realign
+    if not held:
+        return [imu_factor(k0, k1, est.pim)], False
+    # the still readings served the prediction only (vio.imu.integrate_still)
+    bc = est.cfg.bridge
+    fs = bridge_factors(k0, k1, (t_ns - est.kf_t[k0]) * 1e-9, bc.accel_density, bc.gyro_density,
+                        est.bias_walk)
+    if bridged:
+        est.bridged += 1
+        log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
+                 t_ns, k0, k1, (t_ns - est.kf_t[k0]) * 1e-9)
+        est._bridge_t = None
+    else:   # the IMU is back, the world may be tilted: vio.backend.realign
+        fs.append(gyro_rotation_factor(k0, k1, est.pim, est.cfg.realign.gyro_sigma))
+        est.realign.record(k0, k1, est.pim)
+    return fs, True
 
 
 def _gated(pts: dict[int, np.ndarray], fr: FeatureFrame, T_w_c: gtsam.Pose3, thresh: float) -> FeatureFrame:

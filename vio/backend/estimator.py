@@ -258,7 +258,7 @@ class Estimator:
         _, _, b0 = self.latest()
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        fs, held = self._motion_factors(k0, k1, t_ns)
+        fs, held = bridge.motion_factors(self, k0, k1, t_ns)
         f_imu = fs[0]
         for f in fs:
             g.add(f)
@@ -298,28 +298,6 @@ class Estimator:
         self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
-
-    def _motion_factors(self, k0: int, k1: int, t_ns: int) -> tuple[list, bool]:
-        """What ties keyframe k1 to k0: the IMU factor, or across an IMU gap and while the
-        re-alignment holds the IMU back (``held``) the bridge's motion prior and bias walk
-        (``vio.backend.bridge``; with the gyro's relative attitude once the IMU is back)."""
-        bridged = self._bridge_t is not None
-        held = self.realign.holding(bridged, self.kf_t[k0], t_ns)   # vio.backend.realign
-        if not held:
-            return [graph.imu_factor(k0, k1, self.pim)], False
-        # the still readings served the prediction only (vio.imu.integrate_still)
-        bc = self.cfg.bridge
-        fs = bridge.bridge_factors(k0, k1, (t_ns - self.kf_t[k0]) * 1e-9, bc.accel_density,
-                                  bc.gyro_density, self.bias_walk)
-        if bridged:
-            self.bridged += 1
-            log.info("t=%d ns: keyframes %d-%d bridged across an IMU gap (%.2f s, motion prior)",
-                     t_ns, k0, k1, (t_ns - self.kf_t[k0]) * 1e-9)
-            self._bridge_t = None
-        else:   # the IMU is back, the world may be tilted: vio.backend.realign
-            fs.append(bridge.gyro_rotation_factor(k0, k1, self.pim, self.cfg.realign.gyro_sigma))
-            self.realign.record(k0, k1, self.pim)
-        return fs, True
 
     def _after_update(self, k0: int, k1: int, t_ns: int, leaving: list[int], recovered: bool,
                       div0: int, held: bool, features: FeatureFrame, f_imu) -> int:
