@@ -184,9 +184,8 @@ def read_camera(cam_dir: Path, imu: ImuData, options: LoadOptions, warnings: lis
             return CameraStream(calib, t_ns, ()), all_t
         warnings.append(f"{csv}:{row}: {len(missing)} of {len(files)} listed image(s) missing "
                         f"(first: {names[missing[0]]}): those frames are dropped")
-        gone = set(missing)
-        keep = [i for i in range(len(files)) if i not in gone]
-        t_ns, files = t_ns[keep], [files[i] for i in keep]
+        keep = np.setdiff1d(np.arange(len(files)), missing)
+        t_ns, files = t_ns[keep], [files[k] for k in keep]
     return CameraStream(calib, t_ns, tuple(files)), all_t
 
 
