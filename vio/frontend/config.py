@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from vio.config import check_ranges
+
 
 @dataclass(frozen=True)
 class FrontendConfig:
@@ -85,14 +87,7 @@ class FrontendConfig:
                     "fb_threshold_px", "ransac_threshold_px", "clahe_clip", "clahe_tiles",
                     "stereo_init_depth_m", "stereo_fb_threshold_px", "stereo_epipolar_px",
                     "min_depth_m", "max_depth_m", "quality_level", "lk_eps")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"FrontendConfig.{name} must be > 0, got {getattr(self, name)!r}")
-        if min(self.lk_levels, self.stereo_lk_levels, self.border_px, self.stereo_guess_neighbours,
-               self.lk_back_levels, self.stereo_back_levels) < 0:
-            raise ValueError("FrontendConfig.lk_levels, stereo_lk_levels, border_px, "
-                             "stereo_guess_neighbours, lk_back_levels and stereo_back_levels "
-                             "must be >= 0")
+        check_ranges(self, positive=positive)   # and every other number >= 0 (the levels, border_px, ...)
         if self.lk_window < 5:
             raise ValueError(f"FrontendConfig.lk_window must be >= 5, got {self.lk_window}")
         if not 0.0 < self.ransac_confidence < 1.0:
