@@ -83,7 +83,8 @@ class ImageStage:
         imgs = pkt.images
         if not imgs:
             raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
-        imu, self._skipped = concat([*self._skipped, pkt.imu]), []
+        imu = concat([*self._skipped, pkt.imu]) if self._skipped else pkt.imu
+        self._skipped = []
         R = None if self._first else camera_rotation(gyro_rotation(imu), self._T_b_c)
         self._first = False
         img1 = imgs[1] if self.stereo and len(imgs) > 1 else None
