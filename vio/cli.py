@@ -164,5 +164,17 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def console() -> None:
+    """The ``vio`` console script: :func:`main`, then the process ends without Python's last
+    cyclic collection over everything the run left behind (imports, kernels, the run's
+    objects: ~0.4 s after real MH_05 mono's summary line, now ~0.05 s). Nothing of ours waits
+    for that collection: files are closed, sinks and the KLT worker stopped by the time
+    ``main`` returns or by the ``atexit`` handlers, which still run. ``main`` itself, called
+    in-process by an application or a test, leaves the collector as it found it."""
+    rc = main()
+    gc.freeze()
+    sys.exit(rc)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()
