@@ -30,6 +30,41 @@ def test_feature_track_dataset_loads():
     assert d.warnings == ()
 
 
+def test_track_velocities_candidates_median_and_short_tracks():
+    """vio.io.features.track_velocities on tracks interleaved across frames: a quadratic
+    track (every candidate exact) gets its derivative at every observation, also when a
+    gross outlier sits in it (the median of four candidates around it); two-frame tracks
+    their plain difference; a single observation zero; the frames' own order kept."""
+    from vio.io.features import track_velocities
+    from vio.io.types import FeatureFrame
+    t = 0.05 * np.arange(12)
+    u = lambda tt: np.stack([0.1 + 0.4 * tt - 0.3 * tt ** 2, -0.2 + 0.1 * tt + 0.5 * tt ** 2], -1)
+    du = lambda tt: np.stack([0.4 - 0.6 * tt, 0.1 + 1.0 * tt], -1)
+    frames = []
+    for i, ti in enumerate(t):
+        ids, uv = [7, 3], [u(ti), u(ti) + 0.01]          # track 3 carries an outlier at frame 6
+        if i == 6:
+            uv[1] = uv[1] + 0.05
+        if i in (4, 5):
+            ids.append(11); uv.append(np.array([0.02 * i, 0.0]))     # two frames
+        if i == 9:
+            ids.append(5); uv.append(np.array([0.3, 0.3]))           # one frame
+        ids, uv = np.array(ids[::-1]), np.array(uv[::-1])            # not sorted by id
+        frames.append(FeatureFrame(int(ti * 1e9), ids, uv, np.zeros((len(ids), 2)), np.full(len(ids), np.nan)))
+    track_velocities(frames)
+    for i, fr in enumerate(frames):
+        vel = dict(zip(fr.ids.tolist(), fr.velocity))
+        np.testing.assert_allclose(vel[7], du(t[i]), atol=1e-9)
+        if abs(i - 6) > 3:     # the outlier is no candidate's input there
+            np.testing.assert_allclose(vel[3], du(t[i]), atol=1e-9)
+        else:                  # ... and one of two to four there: the median stays near
+            assert np.abs(vel[3] - du(t[i])).max() < 0.5, (i, vel[3])
+        if 11 in vel:
+            np.testing.assert_allclose(vel[11], [0.4, 0.0], atol=1e-9)
+        if 5 in vel:
+            assert (vel[5] == 0).all()
+
+
 def test_static_stereo_dataset_loads_lazily():
     d = load_euroc(shared("euroc_V1_01_static_stereo"))
     assert d.kind == "stereo" and len(d.cam0) == len(d.cam1) == 95

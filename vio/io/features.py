@@ -90,44 +90,55 @@ def track_velocities(frames: list[FeatureFrame]) -> None:
     derivative at t_i of the parabola through (i-3, i-2, i-1) or (i+1, i+2, i+3).
     The median of those available resists a single mistracked neighbour; tracks of
     two frames use their plain difference, single observations get zero.
+
+    All tracks at once, as arrays ordered by (landmark, frame): a 60-s generated excerpt
+    (~60 tracks a frame) took 2.8 s observation by observation.
     """
-    where: dict[int, list[tuple[int, int]]] = {}
-    for fi, fr in enumerate(frames):
-        for k, lid in enumerate(fr.ids):
-            where.setdefault(int(lid), []).append((fi, k))
-    for obs in where.values():
-        if len(obs) < 2:
-            continue
-        t = np.array([frames[fi].t_ns for fi, _ in obs], np.int64)
-        uv = np.array([frames[fi].uv[k] for fi, k in obs])
-        vel = _velocities(t, uv)
-        for (fi, k), v in zip(obs, vel):
-            frames[fi].velocity[k] = v
+    sizes = [len(fr.ids) for fr in frames]
+    if not sum(sizes):
+        return
+    fi = np.repeat(np.arange(len(frames)), sizes)
+    lid = np.concatenate([np.asarray(fr.ids, np.int64) for fr in frames])
+    order = np.lexsort((fi, lid))            # each track's observations in frame order
+    lid, t_ns = lid[order], np.repeat([fr.t_ns for fr in frames], sizes).astype(np.int64)[order]
+    uv = np.concatenate([fr.uv for fr in frames])[order]
+    first = np.r_[True, lid[1:] != lid[:-1]]
+    start = np.maximum.accumulate(np.where(first, np.arange(len(lid)), 0))
+    n = np.bincount(np.cumsum(first) - 1)[np.cumsum(first) - 1]   # its track's length
+    pos = np.arange(len(lid)) - start                              # index within the track
+    vel, keep = np.empty((len(lid), 2)), np.zeros(len(lid), bool)
+    vel[order] = _velocities((t_ns - t_ns[start]) * 1e-9, uv, pos, n)
+    keep[order] = n >= 2                     # (a single observation keeps its zero)
+    for fr, a, b in zip(frames, np.cumsum([0] + sizes[:-1]), np.cumsum(sizes)):
+        fr.velocity[keep[a:b]] = vel[a:b][keep[a:b]]
 
 
-def _velocities(t_ns: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    n = len(t_ns)
-    t = (t_ns - t_ns[0]) * 1e-9
-    out = np.zeros((n, 2))
-
-    def central(i: int, h: int):
-        if i - h >= 0 and i + h < n:
-            return (uv[i + h] - uv[i - h]) / (t[i + h] - t[i - h])
-        return None
-
-    def parabola(i: int, idx: tuple[int, int, int]):
-        if min(idx) < 0 or max(idx) >= n:
-            return None
-        A = np.stack([np.ones(3), t[list(idx)] - t[i], (t[list(idx)] - t[i]) ** 2], 1)
-        return np.linalg.solve(A, uv[list(idx)])[1]
-
-    for i in range(n):
-        cands = [c for c in (central(i, 1), central(i, 2), parabola(i, (i - 3, i - 2, i - 1)),
-                             parabola(i, (i + 1, i + 2, i + 3))) if c is not None]
-        if not cands:
-            j = i - 1 if i > 0 else i + 1
-            cands = [(uv[max(i, j)] - uv[min(i, j)]) / (t[max(i, j)] - t[min(i, j)])]
-        out[i] = np.median(np.array(cands), axis=0)
+def _velocities(t: np.ndarray, uv: np.ndarray, pos: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """:func:`track_velocities`' median of the available candidates for every observation;
+    ``t`` (s) from its track's first observation, ``pos`` its index in the track of
+    length ``n`` (the arrays are ordered by track, then time)."""
+    m = len(t)
+    i = np.arange(m)
+    cands = np.full((4, m, 2), np.nan)
+    for c, h in enumerate((1, 2)):
+        ok = (pos - h >= 0) & (pos + h < n)
+        j = i[ok]
+        cands[c, ok] = (uv[j + h] - uv[j - h]) / (t[j + h] - t[j - h])[:, None]
+    for c, offs in ((2, (-3, -2, -1)), (3, (1, 2, 3))):
+        ok = (pos + min(offs) >= 0) & (pos + max(offs) < n)
+        j = i[ok]
+        idx = j[:, None] + np.array(offs)[None, :]
+        dt = t[idx] - t[j][:, None]
+        A = np.stack([np.ones_like(dt), dt, dt ** 2], 2)
+        cands[c, ok] = np.linalg.solve(A, uv[idx])[:, 1]
+    s = np.sort(cands, axis=0)              # NaN (unavailable) last
+    k = (~np.isnan(cands[:, :, 0])).sum(0)
+    out = np.where((k % 2 == 1)[:, None], s[np.maximum(k - 1, 0) // 2, i],
+                   (s[np.maximum(k // 2 - 1, 0), i] + s[k // 2 % 4, i]) / 2)
+    none = (k == 0) & (n >= 2)               # two-frame tracks and the ends of three-frame ones
+    j = i[none]
+    a = np.where(pos[none] > 0, j - 1, j)
+    out[none] = (uv[a + 1] - uv[a]) / (t[a + 1] - t[a])[:, None]
     return out
 
 
