@@ -87,6 +87,9 @@ def test_imu_gt_sequences_load(seq):
     interpolate_pose(gt, mid)  # inside the span
     if seq == "MH_03_medium":
         assert gt.bg is None  # TUM ground truth has no biases
+        from vio.run import resolve_mode     # nothing to run on: the error names the folder and `vio tracks`
+        with pytest.raises(ValueError, match=r"MH_03_medium: no camera data .*vio tracks"):
+            resolve_mode(d, "auto")
 
 
 # ---------------------------------------------------------------- broken copies

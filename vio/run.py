@@ -101,6 +101,10 @@ def resolve_mode(data: EurocDataset, mode: str) -> str:
     """``auto`` -> features when tracks exist, else stereo/mono by the images present."""
     if mode == "auto":
         mode = "features" if data.features is not None else data.kind
+        if mode not in MODES:     # an IMU (and ground truth) recording without camera data
+            raise ValueError(f"{data.root}: no camera data to run on (neither cam0/data.csv with "
+                             f"images nor cam0/features.csv); `vio tracks {data.root} OUT` generates "
+                             f"feature tracks from its IMU and ground truth")
     if mode not in MODES:
         raise ValueError(f"mode {mode!r} is not available (choose from {MODES})")
     if mode == "features" and data.features is None:
