@@ -29,6 +29,7 @@ from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 from vio.memory import trim_heap, tune_heap
 from vio.reinit import Reinit
 from vio.sync import FramePacket, carry_imu
+from vio.window_outputs import window_estimates
 
 log = logging.getLogger(__name__)
 
@@ -299,9 +300,18 @@ class Pipeline:
         self._init_buf = []
         if not self._start(state, buf[0], buf[-1]):
             return []
-        # the alignment's cost is charged to the window's first frame
-        outs = [self._emit(buf[0], True, False, t0)]
-        return outs + [self._step(p, time.perf_counter()) for p in buf[1:]]
+        # the alignment's cost is charged to the window's first frame; the outputs leave after
+        # the whole window is in, at the estimate it ended with (vio.window_outputs)
+        muted, self.muted = self.muted, True
+        try:
+            outs = [self._emit(buf[0], True, False, t0)] + [self._step(p, time.perf_counter()) for p in buf[1:]]
+        finally:
+            self.muted = muted
+        outs = window_estimates(self.est, outs, buf)
+        for out in ([] if self.muted else outs):
+            for sink in self.sinks:
+                sink(out)
+        return outs
 
     def _start(self, state, pkt: FramePacket, now: FramePacket) -> bool:
         """Initialize the estimator at ``pkt`` (decided at packet ``now``); False (and
