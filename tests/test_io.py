@@ -223,6 +223,23 @@ def test_groundtruth_bad_quaternion(tmp_path):
     _expect(root, "state_groundtruth_estimate0/data.csv", 5, "quaternion norm")
 
 
+def test_image_of_the_wrong_resolution_is_an_error_naming_its_file(tmp_path):
+    """read_image with the camera's calibration (the KLT stage, direct mode's keyframes):
+    an image whose size is not the sensor.yaml resolution names its file."""
+    import cv2
+    from vio.io.euroc import check_resolution
+    calib = load_euroc(shared("euroc_V1_01_static_stereo")).cam0.calib
+    good, small = tmp_path / "good.png", tmp_path / "small.png"
+    cv2.imwrite(str(good), np.zeros((calib.height, calib.width), np.uint8))
+    cv2.imwrite(str(small), np.zeros((480, 640), np.uint8))
+    assert read_image(good, calib).shape == (480, 752)
+    with pytest.raises(DataError, match=r"small\.png: image is 640x480 but camera cam0 is calibrated for 752x480"):
+        read_image(small, calib)
+    assert read_image(small).shape == (480, 640)          # without a calibration: as it is
+    with pytest.raises(DataError, match="cam1 image: image is 640x480"):
+        check_resolution("cam1 image", np.zeros((480, 640), np.uint8), calib)
+
+
 def test_missing_images_drop_their_frames_with_a_warning(tmp_path):
     """An image data.csv lists but the folder lacks is a dropped frame (warning naming the
     csv line), not a failed run; a stereo pair that lost one image is dropped whole; a

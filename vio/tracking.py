@@ -18,7 +18,7 @@ from vio.frontend.camera import camera_rotation
 from vio.frontend.config import FrontendConfig
 from vio.errors import DataError
 from vio.imu import concat
-from vio.io.euroc import read_image
+from vio.io.euroc import check_resolution, read_image
 from vio.io.types import CameraCalib, ImuData
 from vio.sync import FramePacket
 
@@ -41,6 +41,7 @@ class ImageStage:
                  cfg: FrontendConfig | None = None) -> None:
         self.cam0 = cam0
         self.stereo = cam1 is not None
+        self._calibs = (cam0,) if cam1 is None else (cam0, cam1)
         self.frontend = Frontend(cam0, cam1, cfg)
         self._T_b_c = cam0.T_b_c.matrix()
         self._first = True
@@ -55,9 +56,12 @@ class ImageStage:
             return pkt
         files = pkt.image_files[:2 if self.stereo else 1]
         try:
-            return dataclasses.replace(pkt, images=tuple(read_image(p) for p in files))
+            images = tuple(read_image(p) for p in files)
         except DataError as exc:
             return dataclasses.replace(pkt, dropped=str(exc))
+        for path, img, calib in zip(files, images, self._calibs):
+            check_resolution(path, img, calib)
+        return dataclasses.replace(pkt, images=images)
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
         return self._finish(*self._track(pkt))

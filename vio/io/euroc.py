@@ -273,15 +273,27 @@ def _normalized_quats(q: np.ndarray, table) -> np.ndarray:
     return q / n[:, None]
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable. Accepts
-    any reference with a ``read_gray()`` method as well (``vio.io.bag.BagFrame``)."""
+def read_image(path: str | Path, calib: CameraCalib | None = None) -> np.ndarray:
+    """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable, or (with
+    ``calib``) not of the camera's calibrated resolution. Accepts any reference with a
+    ``read_gray()`` method as well (``vio.io.bag.BagFrame``)."""
     if hasattr(path, "read_gray"):
-        return path.read_gray()
-    path = Path(path)
-    img = read_png_gray8(path) if path.suffix.lower() == ".png" else None   # vio.io.png: 2.5x faster
-    if img is None:
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
-    if img is None:
-        raise DataError(path, "image missing or unreadable")
+        img = path.read_gray()
+    else:
+        path = Path(path)
+        img = read_png_gray8(path) if path.suffix.lower() == ".png" else None   # vio.io.png: 2.5x faster
+        if img is None:
+            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        if img is None:
+            raise DataError(path, "image missing or unreadable")
+    return img if calib is None else check_resolution(path, img, calib)
+
+
+def check_resolution(path: object, img: np.ndarray, calib: CameraCalib) -> np.ndarray:
+    """``img`` if it has ``calib``'s resolution, else ``DataError`` naming ``path``: a
+    recording whose images do not match their sensor.yaml is bad input, not a sensor fault
+    (an image that does not decode is one: the frame is dropped, ``vio.tracking``)."""
+    if img.shape[:2] != (calib.height, calib.width):
+        raise DataError(str(path), f"image is {img.shape[1]}x{img.shape[0]} but camera {calib.name} is "
+                                   f"calibrated for {calib.width}x{calib.height} (its sensor.yaml)")
     return img
