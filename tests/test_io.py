@@ -163,6 +163,18 @@ def test_camera_outside_imu_span(tmp_path):
     d = load_euroc(root, LoadOptions(trim_to_imu=True))
     assert len(d.cam0) < 601 and any("dropped" in w for w in d.warnings)
     assert d.features[0].t_ns >= d.imu.t_ns[0]
+    late = [f"{int(r.split(',', 1)[0]) + 100 * 10**9},{r.split(',', 1)[1]}" for r in lines[1:]]
+    path.write_text("\n".join(lines[:1] + late) + "\n")   # the IMU only after the last frame
+    with pytest.raises(DataError, match=r"cam0/data.csv: none of its 601 frames lies inside the IMU span"):
+        load_euroc(root, LoadOptions(trim_to_imu=True))
+
+
+def test_camera_list_without_frames(tmp_path):
+    root = _copy(tmp_path)
+    path = root / "mav0/cam0/data.csv"
+    path.write_text(path.read_text().splitlines()[0] + "\n")
+    with pytest.raises(DataError, match=r"cam0/data.csv: lists no frames"):
+        load_euroc(root)
 
 
 @pytest.mark.parametrize("line,new,words", [

@@ -158,6 +158,8 @@ def read_camera(cam_dir: Path, imu: ImuData, options: LoadOptions, warnings: lis
     if not csv.is_file():  # calibration only (e.g. IMU + ground-truth folders)
         return CameraStream(calib, none), none
     t_ns, names, lines = _read_image_list(csv)
+    if required and not len(t_ns):
+        raise DataError(csv, "lists no frames")
     all_t = t_ns
     lo, hi = imu.t_ns[0], imu.t_ns[-1]
     outside = np.flatnonzero((t_ns < lo) | (t_ns > hi))
@@ -167,6 +169,8 @@ def read_camera(cam_dir: Path, imu: ImuData, options: LoadOptions, warnings: lis
             raise DataError(csv, f"camera stamp {t_ns[i]} outside the IMU span [{lo}, {hi}] "
                                  f"({outside.size} frame(s)); pass trim_to_imu / --trim to drop them",
                             int(lines[i]))
+        if required and outside.size == len(t_ns):
+            raise DataError(csv, f"none of its {len(t_ns)} frames lies inside the IMU span [{lo}, {hi}]")
         warnings.append(f"{csv}: dropped {outside.size} frame(s) outside the IMU span")
         keep = np.setdiff1d(np.arange(len(t_ns)), outside)
         t_ns, names = t_ns[keep], [names[k] for k in keep]
