@@ -373,6 +373,16 @@ def test_console_script_exits_with_mains_code_and_skips_the_last_collection(monk
     assert 'vio = "vio.cli:console"' in text
 
 
+def test_run_too_short_to_initialize_says_why(tmp_path, capsys):
+    """A run that ends before any initialization: exit 0 and the summary says what was
+    missing (here: too little data for the dynamic alignment)."""
+    from vio.cli import main
+    root = _stretch(tmp_path, "short")
+    assert main(["run", str(root), "--no-progress", "--max-frames", "8"]) == 0
+    out = capsys.readouterr().out
+    assert "initialization  not reached (0.35 s of frames buffered; the dynamic alignment needs 1.50 s" in out, out
+
+
 def test_forced_divergence_restarts_softly_without_a_jump(tmp_path, caplog):
     """A bogus 60 m/s velocity is forced into the smoother mid-flight: the monitor must
     restart it at the current pose (no jump in the output) and the run continue."""

@@ -123,6 +123,7 @@ class Pipeline:
         self._t_first: int | None = None
         self._next_try: int | None = None
         self.init_info: InitInfo | None = None
+        self.init_wait = "no frame"       # why no initialization yet (the run summary's)
         self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
         self.imu_dropped = 0
         self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
@@ -259,12 +260,16 @@ class Pipeline:
         buf = self._init_buf
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
         if span < dc.window_s or (self._next_try is not None and buf[-1].t_ns < self._next_try):
+            if self._next_try is None:
+                self.init_wait = (f"{span:.2f} s of frames buffered; the dynamic alignment needs {dc.window_s:.2f} s"
+                                  f" (a still start {self.cfg.backend.init.static_window_s:.2f} s)")
             return []
         res = align(init_window(buf, dc.step_s), self.cam, self.imu_calib, self.cfg.backend)
         if res.ok:
             self._next_try = None
             return self._replay(res.state, t0)
         log.info("dynamic initialization over %.2f s not yet possible: %s", span, res.reason)
+        self.init_wait = f"the last dynamic alignment (over {span:.2f} s) was refused: {res.reason}"
         if span + dc.retry_s > dc.max_window_s + 1e-6:
             keep = buf[-1].t_ns - int(dc.window_s * 0.7e9)
             self._init_buf = [p for p in buf if p.t_ns >= keep]
@@ -281,6 +286,7 @@ class Pipeline:
         buf = self._init_buf
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
         if span < sc.window_s - 1e-6:
+            self.init_wait = f"{span:.2f} s of stereo frames buffered; the stereo alignment needs {sc.window_s:.2f} s"
             return []
         if span > sc.max_window_s + 1e-6:
             return None
@@ -288,6 +294,7 @@ class Pipeline:
                            self.cfg.backend)
         if not res.ok:
             log.info("stereo initialization not yet possible over %.2f s: %s", span, res.reason)
+            self.init_wait = f"the last stereo alignment (over {span:.2f} s) was refused: {res.reason}"
             if span + 1e-6 >= sc.max_window_s:
                 log.warning("stereo initialization failed for %.1f s (%s); trying the IMU-based "
                             "initializations", span, res.reason)

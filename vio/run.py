@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class RunResult:
     """Everything one run produced (online estimate per processed frame). ``init``: how
-    and when the estimator initialized (None: never)."""
+    and when the estimator initialized (None: never; then ``init_wait`` says why)."""
 
     outputs: list[FrameOutput] = field(default_factory=list)
     frames_in: int = 0
@@ -52,6 +52,7 @@ class RunResult:
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
     init: InitInfo | None = None
+    init_wait: str | None = None
     n_init: int = 0
     """Outputs produced by the call that initialized the pipeline (the aligned window's
     replay at a dynamic start): excluded from the per-frame latency figures."""
@@ -247,6 +248,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     res.recoveries = pipe.recoveries if cfg.live else pipe.est.recoveries
     if not cfg.live:   # the live backend's counters stay in its process
         res.init = pipe.init_info
+        res.init_wait = pipe.init_wait
         res.restarts = pipe.est.divergences
         res.reinits = pipe.reinit.count
         res.realigns = pipe.est.realigned
@@ -291,7 +293,7 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
              + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")]
     if res.init is None:
-        lines.append("initialization  " + ("not reached" if not res.outputs else
+        lines.append("initialization  " + (f"not reached ({res.init_wait or 'no attempt'})" if not res.outputs else
                                            "in the live backend process (not reported)"))
     else:
         lines.append(f"initialization  {res.init.method} after {res.init.decided_s:.2f} s of data "
