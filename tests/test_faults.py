@@ -373,6 +373,16 @@ def test_console_script_exits_with_mains_code_and_skips_the_last_collection(monk
     assert 'vio = "vio.cli:console"' in text
 
 
+def test_output_into_a_missing_folder_fails_before_the_run(tmp_path, capsys):
+    """--out (and the other output files) into a folder that does not exist: exit 2 at
+    once, not after the run."""
+    from vio.cli import main
+    for flag in ("--out", "--smoothed", "--map"):
+        assert main(["run", str(tmp_path / "no-such-dataset"), "--no-progress", flag, str(tmp_path / "nope" / "x")]) == 2
+        err = capsys.readouterr().err
+        assert f"{flag} {tmp_path / 'nope' / 'x'}: folder {tmp_path / 'nope'} does not exist" in err, err
+
+
 def test_run_too_short_to_initialize_says_why(tmp_path, capsys):
     """A run that ends before any initialization: exit 0 and the summary says what was
     missing (here: too little data for the dynamic alignment)."""

@@ -341,8 +341,18 @@ def _note_cold_kernels(mode: str) -> None:
               "20-40 s; cached for later runs)", file=sys.stderr)
 
 
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Every output file's folder must exist before the run, not only when it is written
+    at its end (a long run's result would be lost)."""
+    for flag in ("out", "smoothed", "map", "smooth", "rrd"):
+        path = getattr(args, flag, None)
+        if path is not None and not Path(path).resolve().parent.is_dir():
+            raise ValueError(f"--{flag} {path}: folder {Path(path).parent} does not exist")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Entry point of ``vio run``."""
+    _check_outputs(args)
     if args.demo:
         from vio.io.eqvio import load_eqvio
         data = load_eqvio()
