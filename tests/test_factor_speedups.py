@@ -75,9 +75,13 @@ def test_worst_reprojection_errors_match_the_per_track_check():
         tr = Track(i, {f: Obs(rng.normal(0, 0.2, 2), rng.normal(0, 1, 2), 100.0 * f) for f in fs},
                    graph.L(i), fs[0])
         vals.insert(tr.key, np.array([0.2 + 0.1 * i]))
-        if i % 2 == 0 and len(fs) > 1:   # a factor has set the td shifts of these
+        if i % 2 == 0 and len(fs) > 1:   # a factor has set the td shifts (and shift_rows) of these
             graph.build_landmark_factor(tr, fs, BackendConfig(), 1e-3, 1e-5)
+            assert tr.shift_rows is not None and tr.shift_rows[0] == tuple(fs)
         tracks.append(tr)
+    tracks[3].obs[5] = Obs(rng.normal(0, 0.2, 2), rng.normal(0, 1, 2), 500.0)   # observed since its factor:
+    vals.insert(graph.X(5), gtsam.Pose3(gtsam.Rot3(), np.array([0.5, 0.1, 0.0])))   # shift_rows stale
+    frames.append(5)
     table = graph.camera_table(vals, frames)
     got = graph.worst_reprojection_errors(tracks, vals, table)
     for tr, g in zip(tracks, got):

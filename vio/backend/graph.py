@@ -155,6 +155,7 @@ def _cam0_shifts(track: Track, frames: list[int], obs: list, vel: np.ndarray | N
     vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
     off = _row_offsets(obs, line_time_s)
     track.td_shift = {f: (vel[i], float(off[i])) for i, f in enumerate(frames)}
+    track.shift_rows = (tuple(frames), np.c_[np.array([o.uv for o in obs], float).reshape(-1, 2), vel, off])
     return vel, off
 
 
@@ -326,28 +327,25 @@ def worst_reprojection_errors(tracks: list[Track], values: gtsam.Values, table: 
     (default: the tracks' keys in ``values``)."""
     pos, R, t = table
     td = float(values.atVector(TD)[0]) if values.exists(TD) else 0.0
-    uv, vel, off, shifted, fpos, owner, first = [], [], [], [], [], [], []
     lam = np.empty(len(tracks)) if lams is None else np.asarray(lams, float)
+    blocks, frames_all, first, n = [], [], [], 0
     for i, tr in enumerate(tracks):
         if lams is None:
             lam[i] = values.atVector(tr.key)[0]
         frames = tr.frames()
-        first.append(len(fpos))
-        for f in frames:
-            s = tr.td_shift.get(f)
-            uv.append(tr.obs[f].uv)
-            if s is None:
-                vel.append(np.zeros(2)), off.append(0.0), shifted.append(False)
-            else:
-                vel.append(s[0]), off.append(s[1]), shifted.append(True)
-            fpos.append(pos[f])
-            owner.append(i)
+        first.append(n)
+        n += len(frames)
+        frames_all += frames
+        blocks.append(tr.shift_rows[1] if tr.shift_rows is not None and tr.shift_rows[0] == tuple(frames)
+                      else _shift_rows(tr, frames))
     out = np.zeros(len(tracks))
-    if not fpos:
+    if not n:
         return out
-    uv, vel, off = np.array(uv, float).reshape(-1, 2), np.array(vel, float).reshape(-1, 2), np.array(off)
-    uv = np.where(np.array(shifted)[:, None], uv - (td + off)[:, None] * vel, uv)
-    fpos, owner, first = np.array(fpos), np.array(owner), np.array(first)
+    rows = np.concatenate(blocks)
+    uv, vel, off = rows[:, 0:2], rows[:, 2:4], rows[:, 4]
+    uv = np.where(~np.isnan(off)[:, None], uv - (td + off)[:, None] * vel, uv)
+    fpos, first = np.array([pos[f] for f in frames_all]), np.array(first)
+    owner = np.repeat(np.arange(len(tracks)), np.diff(np.r_[first, n]))
     a = uv[first]
     ia = fpos[first]
     # (stacked matmul: the same bits as the per-track R @ m; einsum differs in the last ulp)
@@ -360,6 +358,17 @@ def worst_reprojection_errors(tracks: list[Track], values: gtsam.Values, table: 
         err = np.linalg.norm(p_c[:, :2] / p_c[:, 2:3] - uv[tgt], axis=1)
     err = np.where(p_c[:, 2] > 1e-6, err, np.inf)
     np.maximum.at(out, own, err)
+    return out
+
+
+def _shift_rows(tr: Track, frames: list[int]) -> np.ndarray:
+    """(n, 5) ``uv``, td ``vel``, ``offset`` of ``tr``'s observations in ``frames`` as its
+    factor shifts them (``td_shift``); an unshifted one has vel 0 and offset NaN."""
+    out = np.empty((len(frames), 5))
+    for i, f in enumerate(frames):
+        s = tr.td_shift.get(f)
+        out[i, 0:2] = tr.obs[f].uv
+        out[i, 2:4], out[i, 4] = (0.0, np.nan) if s is None else (s[0], s[1])
     return out
 
 

@@ -51,7 +51,9 @@ class Track:
     (``VisionConfig.eliminate_depth``, ``vio.backend.bundles``) instead of a variable;
     ``lam_prior`` (mean 1/m, information in whitened units): what the observations of
     keyframes that left the window said about it; ``entry``: (frames, arrays) of its last
-    eliminated-depth factor, reused while it is no longer observed."""
+    eliminated-depth factor, reused while it is no longer observed. ``shift_rows``: (frames,
+    (n, 5) rows ``uv``, td ``vel``, ``offset``) of ``td_shift``'s frames in order, set with it:
+    the outlier check's observations in one array (``graph.worst_reprojection_errors``)."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
@@ -64,6 +66,7 @@ class Track:
     lam: float = 0.0
     lam_prior: tuple[float, float] | None = None
     entry: tuple | None = None
+    shift_rows: tuple[tuple[int, ...], np.ndarray] | None = None
 
     def frames(self) -> list[int]:
         return sorted(self.obs)
