@@ -47,13 +47,16 @@ _KERNELS = {"none": 0, "huber": 1, "cauchy": 2}
 @dataclass
 class PointTrack:
     """A world-point landmark: its key, in-window observations by keyframe, the keyframes
-    and smoother index of its main factor (None before the update records it)."""
+    and smoother index of its main factor (None before the update records it); ``rows``:
+    (frames, ``Obs.packed`` rows, row offsets) of its last factor built, for the outlier
+    check (``track_arrays.gather``'s arrays without the gather)."""
 
     lid: int
     key: int
     obs: dict[int, Obs] = field(default_factory=dict)
     frames: list[int] = field(default_factory=list)
     index: int | None = None
+    rows: tuple[tuple[int, ...], np.ndarray, np.ndarray] | None = None
 
 
 class PointTracks:
@@ -155,6 +158,8 @@ class PointTracks:
             return []
         est, vc = self.est, self.est.cfg.vision
         P, start, off = gather([obs for _, _, obs, _ in jobs], est.cam.line_time_s)
+        for (pt, fr, _, _), a, b in zip(jobs, start[:-1], start[1:]):
+            pt.rows = (tuple(fr), P[a:b], off[a:b])
         vel = graph._td_velocity(P[:, 2:4], vc.td_velocity_max)
         uv = np.ascontiguousarray(P[:, 0:2])
         if vc.td_velocity == "predicted" and self._table is not None:
@@ -250,7 +255,7 @@ class PointTracks:
             return []
         # every candidate's observations in one array, one compiled pass (~60 points of ~8
         # observations: 3.8 -> ~0.6 ms a keyframe on generated MH_03)
-        ob, start, off = gather([[pt.obs[f] for f in pt.frames] for _, pt in cand], self.est.cam.line_time_s)
+        ob, start, off = self._rows([pt for _, pt in cand])
         j = np.array([pos[f] for _, pt in cand for f in pt.frames], dtype=np.int64)
         P = np.array([values.atVector(pt.key) for _, pt in cand], dtype=float).reshape(-1, 3)
         vel = graph._td_velocity(ob[:, 2:4], vc.td_velocity_max)
@@ -268,6 +273,21 @@ class PointTracks:
         for lid in bad:
             del self.tracks[lid]
         return bad
+
+    def _rows(self, pts: list[PointTrack]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``gather``'s (rows, start, offsets) of the points' observations in ``pt.frames``:
+        the rows their last factors were built from where those frames are the same (the
+        main factors this keyframe's update took), gathered anew for the others."""
+        blocks = [pt.rows if pt.rows is not None and pt.rows[0] == tuple(pt.frames) else None for pt in pts]
+        miss = [i for i, b in enumerate(blocks) if b is None]
+        if miss:
+            P, start, off = gather([[pts[i].obs[f] for f in pts[i].frames] for i in miss], self.est.cam.line_time_s)
+            for i, a, b in zip(miss, start[:-1], start[1:]):
+                blocks[i] = (None, P[a:b], off[a:b])
+        sizes = np.array([len(b[1]) for b in blocks], np.int64)
+        start = np.zeros(len(blocks) + 1, np.int64)
+        np.cumsum(sizes, out=start[1:])
+        return np.concatenate([b[1] for b in blocks]), start, np.concatenate([b[2] for b in blocks])
 
     def points_w(self, values: gtsam.Values) -> tuple[list[int], list[np.ndarray]]:
         ids, pts = [], []
