@@ -56,6 +56,14 @@ def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s):
         assert pt.index is not None and set(pt.frames) == set(pt.obs) <= window
         assert est.values.exists(pt.key)
     assert abs(est.td() - 0.005) < 0.001
+    # the outlier check's rows (kept from the factors built, else gathered): as gathered
+    from vio.backend.track_arrays import gather
+    plist = list(pts.values())
+    hits = sum(pt.rows is not None and pt.rows[0] == tuple(pt.frames) for pt in plist)
+    plist[0].rows = None
+    got = est.lm.points._rows(plist)
+    ref = gather([[pt.obs[f] for f in pt.frames] for pt in plist], est.cam.line_time_s)
+    assert hits >= len(plist) // 2 and all(np.array_equal(a, b, equal_nan=True) for a, b in zip(got, ref))
     e = evaluate(*res.arrays(), d.groundtruth)
     a = evaluate(*run_dataset(d, _cfg("anchor"), mode="features").arrays(), d.groundtruth)
     print(f"point {e.ate_rmse:.4f} anchor {a.ate_rmse:.4f} m over {e.path_length:.1f} m")
