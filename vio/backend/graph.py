@@ -155,7 +155,8 @@ def _cam0_shifts(track: Track, frames: list[int], obs: list, vel: np.ndarray | N
     vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
     off = _row_offsets(obs, line_time_s)
     track.td_shift = {f: (vel[i], float(off[i])) for i, f in enumerate(frames)}
-    track.shift_rows = (tuple(frames), np.c_[np.array([o.uv for o in obs], float).reshape(-1, 2), vel, off])
+    track.shift_rows = (tuple(frames), np.concatenate([np.array([o.uv for o in obs], float).reshape(-1, 2), vel,
+                                                       np.asarray(off, float)[:, None]], axis=1))
     return vel, off
 
 

@@ -90,12 +90,12 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
           R, t, w, v, R10, t01, float(min_depth), float(gate), float(vmax), v0, rv, uv, vel, target, right,
           offset)
     basis = tangent_basis(uv)
+    shift = np.concatenate([uv_o, v0, off[:, None]], axis=1)    # each track's Track.shift_rows: a view
     out = []
     for j, (tr, fr, _) in enumerate(items):
         s, r0, r1 = start[j], rstart[j], rstart[j + 1]
         tr.td_shift = {f: (v0[s + i], float(off[s + i])) for i, f in enumerate(fr)}
-        e = s + len(fr)
-        tr.shift_rows = (tuple(fr), np.c_[uv_o[s:e], v0[s:e], off[s:e]])
+        tr.shift_rows = (tuple(fr), shift[s:s + len(fr)])
         out.append(TrackRows(uv[r0:r1], vel[r0:r1], target[r0:r1], right[r0:r1], offset[r0:r1],
                              basis[r0:r1], uv_o[s], v0[s], float(off[s])))
     return out
