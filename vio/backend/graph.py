@@ -150,13 +150,12 @@ def build_landmark_factor(track: Track, frames: list[int], cfg: BackendConfig, s
 def _cam0_shifts(track: Track, frames: list[int], obs: list, vel: np.ndarray | None, vmax: float,
                  line_time_s: float) -> tuple[np.ndarray, np.ndarray]:
     """The cam0 td velocities (n, 2) (measured where ``vel`` is None, capped at ``vmax``)
-    and row offsets (n,) of ``obs`` in ``frames``, recorded in ``track.td_shift`` for the
+    and row offsets (n,) of ``obs`` in ``frames``, recorded with ``Track.set_shifts`` for the
     outlier check (:func:`reprojection_errors`)."""
     vel = _td_velocity(np.array([o.velocity for o in obs]) if vel is None else vel, vmax)
     off = _row_offsets(obs, line_time_s)
-    track.td_shift = {f: (vel[i], float(off[i])) for i, f in enumerate(frames)}
-    track.shift_rows = (tuple(frames), np.concatenate([np.array([o.uv for o in obs], float).reshape(-1, 2), vel,
-                                                       np.asarray(off, float)[:, None]], axis=1))
+    track.set_shifts(frames, np.concatenate([np.array([o.uv for o in obs], float).reshape(-1, 2), vel,
+                                             np.asarray(off, float)[:, None]], axis=1))
     return vel, off
 
 

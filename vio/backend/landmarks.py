@@ -52,8 +52,9 @@ class Track:
     ``lam_prior`` (mean 1/m, information in whitened units): what the observations of
     keyframes that left the window said about it; ``entry``: (frames, arrays) of its last
     eliminated-depth factor, reused while it is no longer observed. ``shift_rows``: (frames,
-    (n, 5) rows ``uv``, td ``vel``, ``offset``) of ``td_shift``'s frames in order, set with it:
-    the outlier check's observations in one array (``graph.worst_reprojection_errors``)."""
+    (n, 5) rows ``uv``, td ``vel``, ``offset``) of ``td_shift``'s frames in order, both set by
+    :meth:`set_shifts`: the outlier check's observations in one array
+    (``graph.worst_reprojection_errors``)."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
@@ -70,6 +71,13 @@ class Track:
 
     def frames(self) -> list[int]:
         return sorted(self.obs)
+
+    def set_shifts(self, frames: list[int], rows: np.ndarray) -> None:
+        """Record how its factor shifts the cam0 observations in ``frames``: ``rows`` (n, 5)
+        ``uv``, td ``vel``, ``offset``, kept whole (``shift_rows``) and per frame
+        (``td_shift``)."""
+        self.td_shift = {f: (rows[i, 2:4], float(rows[i, 4])) for i, f in enumerate(frames)}
+        self.shift_rows = (tuple(frames), rows)
 
     def stereo_frames(self) -> list[int]:
         return [f for f in self.frames() if self.obs[f].right_uv is not None]

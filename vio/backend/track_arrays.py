@@ -51,8 +51,8 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
                table: tuple | None, rig_c1: tuple | None, min_depth: float, gate: float,
                vmax: float, line_time_s: float) -> list[TrackRows]:
     """The rows of each ``(track, frames, lam)`` in ``items`` (frames anchor first, ``lam``
-    the inverse depth, 1/m); records each track's ``td_shift`` (cam0 velocity and offset
-    per frame, for the outlier check).
+    the inverse depth, 1/m); records each track's cam0 velocity and offset per frame for
+    the outlier check (``Track.set_shifts``).
 
     ``stereo``: cam1 rows for the observations with a match; ``predicted``: the td
     velocities predicted at ``lam`` (tracks with ``lam > 0``; the others, measured) from
@@ -90,12 +90,11 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
           R, t, w, v, R10, t01, float(min_depth), float(gate), float(vmax), v0, rv, uv, vel, target, right,
           offset)
     basis = tangent_basis(uv)
-    shift = np.concatenate([uv_o, v0, off[:, None]], axis=1)    # each track's Track.shift_rows: a view
+    shift = np.concatenate([uv_o, v0, off[:, None]], axis=1)    # Track.set_shifts: each track a view
     out = []
     for j, (tr, fr, _) in enumerate(items):
         s, r0, r1 = start[j], rstart[j], rstart[j + 1]
-        tr.td_shift = {f: (v0[s + i], float(off[s + i])) for i, f in enumerate(fr)}
-        tr.shift_rows = (tuple(fr), shift[s:s + len(fr)])
+        tr.set_shifts(fr, shift[s:s + len(fr)])
         out.append(TrackRows(uv[r0:r1], vel[r0:r1], target[r0:r1], right[r0:r1], offset[r0:r1],
                              basis[r0:r1], uv_o[s], v0[s], float(off[s])))
     return out
