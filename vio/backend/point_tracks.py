@@ -35,7 +35,7 @@ from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Obs
 from vio.backend.motion import motion_table
 from vio.backend.td_velocity import points_velocities
-from vio.backend.track_arrays import gather
+from vio.backend.track_arrays import gather, run_starts
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -284,9 +284,7 @@ class PointTracks:
             P, start, off = gather([[pts[i].obs[f] for f in pts[i].frames] for i in miss], self.est.cam.line_time_s)
             for i, a, b in zip(miss, start[:-1], start[1:]):
                 blocks[i] = (None, P[a:b], off[a:b])
-        sizes = np.array([len(b[1]) for b in blocks], np.int64)
-        start = np.zeros(len(blocks) + 1, np.int64)
-        np.cumsum(sizes, out=start[1:])
+        start = run_starts(np.array([len(b[1]) for b in blocks], np.int64))
         return np.concatenate([b[1] for b in blocks]), start, np.concatenate([b[2] for b in blocks])
 
     def points_w(self, values: gtsam.Values) -> tuple[list[int], list[np.ndarray]]:

@@ -81,7 +81,7 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
     R10, t01 = _NO_RIG if rig_c1 is None else rig_c1
     c = np.ascontiguousarray
     uv_o, meas, ruv, rmeas = c(P[:, 0:2]), c(P[:, 2:4]), c(P[:, 7:9]), c(P[:, 9:11])
-    rstart = _offsets(n_rows)
+    rstart = run_starts(n_rows)
     m = int(rstart[-1])
     v0, rv = np.empty((len(P), 2)), np.empty((len(P), 2))
     uv, vel, offset = np.empty((m, 2)), np.empty((m, 2)), np.empty(m)
@@ -106,11 +106,11 @@ def gather(groups: list[list[Obs]], line_time_s: float) -> tuple[np.ndarray, np.
     rows begin (and the total), ``off`` (N,) their row offsets (s, ``graph.row_offsets``
     at ``line_time_s``)."""
     P = np.array([o.packed for obs in groups for o in obs], float).reshape(-1, 11)
-    start = _offsets(np.array([len(obs) for obs in groups], np.int64))
+    start = run_starts(np.array([len(obs) for obs in groups], np.int64))
     return P, start, row_offsets(P[:, 4], P[:, 5], line_time_s)
 
 
-def _offsets(counts: np.ndarray) -> np.ndarray:
+def run_starts(counts: np.ndarray) -> np.ndarray:
     """(n + 1,) start of each of n runs of ``counts`` (n,) rows, and the total."""
     out = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=out[1:])
