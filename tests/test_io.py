@@ -239,7 +239,6 @@ def test_image_of_the_wrong_resolution_is_an_error_naming_its_file(tmp_path):
     """read_image with the camera's calibration (the KLT stage, direct mode's keyframes):
     an image whose size is not the sensor.yaml resolution names its file."""
     import cv2
-    from vio.io.euroc import check_resolution
     calib = load_euroc(shared("euroc_V1_01_static_stereo")).cam0.calib
     good, small = tmp_path / "good.png", tmp_path / "small.png"
     cv2.imwrite(str(good), np.zeros((calib.height, calib.width), np.uint8))
@@ -249,7 +248,7 @@ def test_image_of_the_wrong_resolution_is_an_error_naming_its_file(tmp_path):
         read_image(small, calib)
     assert read_image(small).shape == (480, 640)          # without a calibration: as it is
     with pytest.raises(DataError, match="cam1 image: image is 640x480"):
-        check_resolution("cam1 image", np.zeros((480, 640), np.uint8), calib)
+        calib.check_resolution(np.zeros((480, 640), np.uint8), "cam1 image")
 
 
 def test_missing_images_drop_their_frames_with_a_warning(tmp_path):

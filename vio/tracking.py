@@ -18,7 +18,7 @@ from vio.frontend.camera import camera_rotation
 from vio.frontend.config import FrontendConfig
 from vio.errors import DataError
 from vio.imu import concat
-from vio.io.euroc import check_resolution, read_image
+from vio.io.euroc import read_image
 from vio.io.types import CameraCalib, ImuData
 from vio.sync import FramePacket
 
@@ -60,7 +60,7 @@ class ImageStage:
         except DataError as exc:
             return dataclasses.replace(pkt, dropped=str(exc))
         for path, img, calib in zip(files, images, self._calibs):
-            check_resolution(path, img, calib)
+            calib.check_resolution(img, path)
         return dataclasses.replace(pkt, images=images)
 
     def __call__(self, pkt: FramePacket) -> FramePacket:

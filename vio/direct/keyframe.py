@@ -24,7 +24,7 @@ from vio.direct.epipolar import epipolar_search, undistort_pinhole
 from vio.direct.photocal import PhotometricCalibration
 from vio.direct.select import select_points
 from vio.direct.trackframe import TrackingReference, make_reference
-from vio.io.euroc import check_resolution, read_image
+from vio.io.euroc import read_image
 from vio.io.types import CameraCalib
 
 
@@ -187,7 +187,7 @@ def _points(pyr: tuple[BilinearImage, ...], right_raw: np.ndarray | str | Path, 
     image or its file ``right_raw``) and their TrackFrame reference (``build_keyframe``)."""
     L = pyr[0]
     raw = (read_image(right_raw, rig.cam1) if isinstance(right_raw, (str, Path))
-           else check_resolution("cam1 image", right_raw, rig.cam1))
+           else rig.cam1.check_resolution(right_raw, "cam1 image"))
     R = BilinearImage(rig.undistort_one(raw, 1))
     sel = select_points(L.image, cfg.select, (L._stack[..., 1], L._stack[..., 2]))
     gain = np.log(_std_ratio(L, R))

@@ -53,7 +53,7 @@ from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord
 from vio.direct.trackframe import MotionPrior, track_frame
-from vio.io.euroc import check_resolution, read_image
+from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
 A = gtsam.symbol_shorthand.A
@@ -126,7 +126,7 @@ class PhotometricSource:
         imgs = getattr(frame, "images", ()) or tuple(getattr(frame, "image_files", ())[:2])
         if len(imgs) < 2:
             raise ValueError(f"direct mode: keyframe {k} packet has no stereo images")
-        left = (check_resolution(f"cam0 image at t={frame.t_ns} ns", imgs[0], self.rig.cam0)
+        left = (self.rig.cam0.check_resolution(imgs[0], f"cam0 image at t={frame.t_ns} ns")
                 if isinstance(imgs[0], np.ndarray) else read_image(imgs[0], self.rig.cam0))
         # the right image (or its file) goes to the keyframe worker with the points
         self.kfs[k] = build_keyframe(k, frame.t_ns, left, imgs[1], self.rig, self.cfg, background=True)

@@ -30,10 +30,7 @@ def check_image(img: np.ndarray, cam: Camera, what: str) -> np.ndarray:
     if img.ndim != 2 or img.dtype != np.uint8:
         raise ValueError(f"{what}: expected a grayscale uint8 (H, W) image, got "
                          f"dtype {img.dtype} shape {img.shape}")
-    if img.shape != (cam.height, cam.width):
-        raise ValueError(f"{what}: image is {img.shape[1]}x{img.shape[0]} but camera "
-                         f"{cam.calib.name} is calibrated for {cam.width}x{cam.height}")
-    return img
+    return cam.calib.check_resolution(img, what)
 
 
 def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np.ndarray,

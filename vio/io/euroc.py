@@ -290,14 +290,4 @@ def read_image(path: str | Path, calib: CameraCalib | None = None) -> np.ndarray
             img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
         if img is None:
             raise DataError(path, "image missing or unreadable")
-    return img if calib is None else check_resolution(path, img, calib)
-
-
-def check_resolution(path: object, img: np.ndarray, calib: CameraCalib) -> np.ndarray:
-    """``img`` if it has ``calib``'s resolution, else ``DataError`` naming ``path``: a
-    recording whose images do not match their sensor.yaml is bad input, not a sensor fault
-    (an image that does not decode is one: the frame is dropped, ``vio.tracking``)."""
-    if img.shape[:2] != (calib.height, calib.width):
-        raise DataError(str(path), f"image is {img.shape[1]}x{img.shape[0]} but camera {calib.name} is "
-                                   f"calibrated for {calib.width}x{calib.height} (its sensor.yaml)")
-    return img
+    return img if calib is None else calib.check_resolution(img, path)

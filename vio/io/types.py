@@ -12,6 +12,8 @@ from typing import Literal
 import gtsam
 import numpy as np
 
+from vio.errors import DataError
+
 DistortionModel = Literal["radial-tangential", "equidistant", "none"]
 
 
@@ -48,6 +50,15 @@ class CameraCalib:
     @property
     def height(self) -> int:
         return self.resolution[1]
+
+    def check_resolution(self, img: np.ndarray, where: object) -> np.ndarray:
+        """``img`` if it is ``height x width``, else ``DataError`` naming ``where`` (its file,
+        or which frame): images that do not match their calibration are bad input, not a
+        sensor fault (an image that does not decode is one: ``vio.tracking`` drops it)."""
+        if img.shape[:2] != (self.height, self.width):
+            raise DataError(str(where), f"image is {img.shape[1]}x{img.shape[0]} but camera {self.name} is "
+                                        f"calibrated for {self.width}x{self.height}")
+        return img
 
 
 @dataclass(frozen=True)
