@@ -135,7 +135,7 @@ def _run(args: argparse.Namespace) -> int:
     gc.disable()
     try:
         _prestart_worker(args)
-        from vio.run import cmd_run
+        from vio.run_cmd import cmd_run
         gc.freeze()
         return cmd_run(args)
     finally:

@@ -1,0 +1,90 @@
+"""``vio run``: the command line's run (load the dataset, pick the mode and the configuration,
+run it with ``vio.run.run_dataset``, write the trajectory files, print the summary)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from vio.run import PHOTOMETRIC_MODES, STEREO_MODES, load_config, resolve_mode, run_dataset, summary
+from vio.trajectory import write_tum
+
+
+def _note_cold_kernels(mode: str) -> None:
+    """One line on stderr when the Numba kernels are not compiled yet (first run after an
+    install or update): that run spends 20-40 s compiling before its first frame
+    (hybrid on 2 cores: 49 s instead of 15 s for real MH_01); later runs load them."""
+    from factors.jit import cache_is_warm
+    from factors.track_kernel import track_eval
+    kernels = [track_eval]
+    if mode in PHOTOMETRIC_MODES:
+        from factors.photometric_kernel import host_system
+        kernels.append(host_system)
+    if not all(cache_is_warm(k) for k in kernels):
+        print("vio run: compiling the numerical kernels (first run after an install or update, "
+              "20-40 s; cached for later runs)", file=sys.stderr)
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Every output file's folder must exist, and ``--smooth`` have its ``--out``, before the
+    run, not only when they are written at its end (a long run's result would be lost)."""
+    for flag in ("out", "smoothed", "map", "smooth", "rrd"):
+        path = getattr(args, flag, None)
+        if path is not None and not Path(path).resolve().parent.is_dir():
+            raise ValueError(f"--{flag} {path}: folder {Path(path).parent} does not exist")
+    if getattr(args, "smooth", None) is not None and not args.out:
+        raise ValueError("--smooth needs --out (the raw track it smooths)")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Entry point of ``vio run``."""
+    _check_outputs(args)
+    if args.demo:
+        from vio.io.eqvio import load_eqvio
+        data = load_eqvio()
+    elif args.dataset is None:
+        raise ValueError("give a DATASET folder or --demo")
+    else:
+        from vio.io.load import load_dataset
+        data = load_dataset(args.dataset, args.trim, getattr(args, "topics", None), getattr(args, "calib", None),
+                            getattr(args, "imu_calib", None), getattr(args, "groundtruth", None))
+    mode = resolve_mode(data, args.mode)
+    cfg = load_config(args.config, args.td if args.td is not None else data.td_s, mode)
+    _note_cold_kernels(mode)
+    if getattr(args, "live", False):
+        cfg = dataclasses.replace(cfg, live=True)
+    sinks = []
+    if args.rerun or args.rrd:
+        from vio.viz import RerunConfig, RerunSink
+        q = getattr(args, "viz_jpeg_quality", 60)
+        vcfg = RerunConfig(image_every=getattr(args, "viz_image_every", 3), jpeg_quality=q or None)
+        sinks.append(RerunSink(spawn=args.rerun, rrd=args.rrd, groundtruth=data.groundtruth,
+                               cam=data.cam0.calib, cfg=vcfg,
+                               cam1=data.cam1.calib if mode in STEREO_MODES else None))
+    try:
+        res = run_dataset(data, cfg, args.max_frames, sinks, progress=not args.no_progress,
+                          mode=mode)
+    finally:
+        for sink in sinks:
+            sink.close()
+    if args.out:
+        t, _, _ = res.arrays()
+        write_tum(args.out, t, [o.T_w_b for o in res.outputs])
+    if args.smoothed:
+        items = sorted(res.smoothed.values(), key=lambda x: x[0])
+        write_tum(args.smoothed, [t for t, _ in items], [T for _, T in items])
+    if args.map is not None:
+        from vio.nav.grid import save_map
+        t, p, _ = res.arrays()
+        save_map(args.map, res.map_points(), p)
+    if args.smooth is not None:
+        from vio.nav.cli import smooth_file
+        smooth_file(args.out, args.smooth)
+    for line in summary(res, data):
+        print(line)
+    if mode in PHOTOMETRIC_MODES and not cfg.direct.points.exposure_td:
+        print("td note         the photometric term holds td at the sync layer's value (--td); to "
+              "estimate it: --config examples/photometric_td.yaml")
+    return 0
