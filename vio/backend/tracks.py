@@ -21,6 +21,7 @@ from factors.stack import Member
 from vio.backend import graph, health
 from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
+from vio.backend.kernels import compile_kernels
 from vio.backend.track_arrays import compile_kernel
 from vio.backend.track_build import TrackFactorBuilder
 from vio.io.types import FeatureFrame
@@ -48,7 +49,7 @@ class LandmarkManager(TrackFactorBuilder):
         self._rig = None                         # factors.stereo.StereoRig of est.C_stereo
         self._rig_c1 = None                      # td_velocity.rig_c1 of est.T_c0_c1 (stereo)
         self.points = PointTracks(est)           # triangulated tracks as world points (VisionConfig.reanchor)
-        graph.compile_kernels()                  # not at the first keyframe: a stall there
+        compile_kernels()                  # not at the first keyframe: a stall there
         compile_kernel()
 
     # ------------------------------------------------------------ bookkeeping
