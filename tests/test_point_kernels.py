@@ -1,7 +1,8 @@
 """The compiled world-point kernels against the numpy arithmetic they replace, to the bit:
 the predicted td velocities (vio.backend.td_velocity.point_velocities, and
 points_velocities over many points at once) and the outlier check's worst reprojection
-error (vio.backend.point_tracks.point_worst_errors)."""
+errors per observation (vio.backend.point_outliers.point_row_errors), and the check's
+verdict (vio.backend.point_outliers.rejections)."""
 
 import gtsam
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 
 from vio.backend import graph
 from vio.backend.landmarks import cross3
-from vio.backend.point_tracks import point_worst_errors
+from vio.backend.point_outliers import point_row_errors, rejections, worst_per_point
 from vio.backend.td_velocity import point_velocities, points_velocities
 
 
@@ -61,16 +62,16 @@ def test_points_velocities_equal_the_per_point_kernel():
     assert out.any()
 
 
-def _worst_numpy(j, uv, vel, off, p, R, t, td, min_depth, max_depth):
+def _rows_numpy(j, uv, vel, off, p, R, t, td, min_depth, max_depth):
     q = np.einsum("nab,na->nb", R[j], p - t[j])
     if not np.all((q[:, 2] >= min_depth) & (q[:, 2] <= max_depth)):
-        return np.inf
+        return np.full(len(j), np.inf)
     moved = uv - (td + off)[:, None] * vel
-    return float(np.max(np.linalg.norm(q[:, :2] / q[:, 2:3] - moved, axis=1)))
+    return np.linalg.norm(q[:, :2] / q[:, 2:3] - moved, axis=1)
 
 
 @pytest.mark.parametrize("seed", range(5))
-def test_point_worst_errors_match_numpy(seed):
+def test_point_row_errors_match_numpy(seed):
     rng = np.random.default_rng(100 + seed)
     R, t, _, _ = _table(rng)
     counts = rng.integers(1, 9, 40)
@@ -79,12 +80,43 @@ def test_point_worst_errors_match_numpy(seed):
     j = rng.integers(0, len(R), N).astype(np.int64)
     uv, vel, off = rng.normal(size=(N, 2)) * 0.3, rng.normal(size=(N, 2)), rng.normal(size=N) * 0.01
     P = rng.normal(size=(40, 3)) * 3           # some points behind or too close: inf
-    out = np.empty(40)
-    point_worst_errors(start, j, uv, vel, off, P, R, t, 0.004, 0.1, 20.0, out)
-    want = [_worst_numpy(j[a:b], uv[a:b], vel[a:b], off[a:b], P[i], R, t, 0.004, 0.1, 20.0)
-            for i, (a, b) in enumerate(zip(start[:-1], start[1:]))]
+    out = np.empty(N)
+    point_row_errors(start, j, uv, vel, off, P, R, t, 0.004, 0.1, 20.0, out)
+    want = np.concatenate([_rows_numpy(j[a:b], uv[a:b], vel[a:b], off[a:b], P[i], R, t, 0.004, 0.1, 20.0)
+                           for i, (a, b) in enumerate(zip(start[:-1], start[1:]))])
     assert np.isinf(want).any() and np.isfinite(want).any()
-    assert np.array_equal(out, np.array(want))
+    assert np.allclose(out, want, rtol=1e-12, atol=0) and np.array_equal(np.isinf(out), np.isinf(want))
+    worst = worst_per_point(out, start)
+    assert np.array_equal(worst, [out[a:b].max() for a, b in zip(start[:-1], start[1:])])
+
+
+def test_rejections_trim_isolated_outliers_and_drop_inconsistent_points():
+    counts = [4, 4, 2, 3, 3, 3] + [2] * 6
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    rows = np.array([1, 2, 1, 1,         # fine
+                     1, 9, 1, 1,         # one of four past the limit: trimmed
+                     1, 9,               # only one would stay: dropped
+                     1, 9, 9,            # most disagree: dropped
+                     1, 1, np.inf,       # a depth out of range: dropped
+                     1, np.nan, 1]       # NaN: dropped
+                    + [1, 1] * 6, float)  # fine (5 of 12 points flagged: not a mass rejection)
+    dropped, trimmed = rejections(rows, start, 6.0, keep_obs=True, min_keep=3, max_trim=1)
+    assert dropped == [2, 3, 4, 5] and list(trimmed) == [1]
+    assert trimmed[1].tolist() == [False, True, False, False]
+    dropped, trimmed = rejections(rows, start, 6.0, keep_obs=False, min_keep=3, max_trim=1)
+    assert dropped == [1, 2, 3, 4, 5] and not trimmed
+    # more than half of the points flagged at once: the estimate is suspect, all dropped
+    dropped, trimmed = rejections(rows[:19], start[:7], 6.0, keep_obs=True)
+    assert dropped == [1, 2, 3, 4, 5] and not trimmed
+    one = np.array([0, 5, 7], np.int64)    # one isolated error next to a fine point
+    # two past the limit among five: over max_trim, dropped
+    dropped, trimmed = rejections(np.array([1, 9, 1, 9, 1, 1, 1.0]), one, 6.0, keep_obs=True)
+    assert dropped == [0] and not trimmed
+    # the others near the limit (spread errors, a poorly placed point): dropped
+    dropped, trimmed = rejections(np.array([5, 9, 5, 5, 5, 1, 1.0]), one, 6.0, keep_obs=True)
+    assert dropped == [0] and not trimmed
+    dropped, trimmed = rejections(np.array([5, 9, 5, 5, 5, 1, 1.0]), one, 6.0, keep_obs=True, agree=1.0)
+    assert not dropped and list(trimmed) == [0]
 
 
 def test_cross_matches_numpy():

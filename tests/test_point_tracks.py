@@ -97,3 +97,42 @@ def test_prefetched_farewells_change_nothing(mh04_12s, monkeypatch):
     without = run_dataset(mh04_12s, _cfg("point"), mode="features")
     for a, b in zip(with_prefetch.arrays(), without.arrays()):
         assert np.array_equal(a, b)
+
+
+def test_isolated_outliers_trim_the_observation_and_retire_the_point(mh04_12s, monkeypatch):
+    """The generated tracks' gross outliers (1.5 %, single observations): the outlier check
+    drops only those observations (``VisionConfig.outlier_obs``); the point keeps a main
+    factor over its other observations, with the slot the outlier update gave it, and gets
+    no new observation while it is in the window."""
+    from vio.backend import graph
+    from vio.backend.point_tracks import PointTracks
+    from vio.pipeline import Pipeline
+    seen: dict = {"trimmed": 0, "dropped": 0, "retired": []}
+    orig_check, orig_init = PointTracks.outlier_removals, Pipeline.__init__
+
+    def check(self, *a, **k):
+        dropped, trimmed = orig_check(self, *a, **k)
+        seen["trimmed"] += len(trimmed)
+        seen["dropped"] += len(dropped)
+        seen["retired"] += [(pt, set(pt.obs)) for pt in self.tracks.values() if pt.retired and pt.lid in trimmed]
+        return dropped, trimmed
+
+    def keep(self, *a, **k):
+        orig_init(self, *a, **k)
+        seen["pipe"] = self
+
+    monkeypatch.setattr(PointTracks, "outlier_removals", check)
+    monkeypatch.setattr(Pipeline, "__init__", keep)
+    res = run_dataset(mh04_12s, _cfg("point"), mode="features")
+    est = seen["pipe"].est
+    assert res.restarts == 0 and res.recoveries == 0
+    assert seen["trimmed"] >= 5 and seen["retired"]
+    for pt, obs in seen["retired"]:       # never observed again after it was retired
+        assert set(pt.obs) <= obs
+    factors = est.smoother.getFactors()
+    live = [(key, pt) for key, pt in est.lm.points.tracks.items()]
+    assert any(pt.retired for _, pt in live)
+    for key, pt in live:                  # each main factor sits in its recorded slot
+        f = factors.at(pt.index)
+        assert f is not None and pt.key in f.keys()
+        assert {graph.X(k) for k in pt.frames} == {k for k in f.keys() if k != pt.key} - {graph.TD}

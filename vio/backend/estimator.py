@@ -348,6 +348,7 @@ class Estimator:
         held = self.carry.take(self.smoother) if self.smoother is not None else None
         try:
             if held is not None:
+                self.lm.arm(held[0])
                 self._update(held[0], gtsam.Values(), held[1], held[2])
         except RuntimeError as exc:
             T, v, b = self.latest()

@@ -15,7 +15,9 @@ Life cycle per keyframe: a live point's factor is rebuilt with the new observati
 when keyframes leave the window, the observations they hold move into a farewell factor
 that the smoother marginalizes with them, so the main factor never holds a marginalized
 key and nothing measured is dropped or re-expressed; the point's timestamp follows its
-newest observation, so it is marginalized with its last observer. Frames: ``p_w`` world
+newest observation, so it is marginalized with its last observer. After each update the
+outlier check (``vio.backend.point_outliers``) drops a point whose errors disagree, or
+only the observation of an isolated gross error, retiring the point. Frames: ``p_w`` world
 (m), observations normalized cam0 coordinates, keyframe poses ``T_w_b``; used in monocular
 modes with the pinhole model and a held extrinsic (the factor holds ``T_b_c``).
 """
@@ -28,12 +30,12 @@ from typing import TYPE_CHECKING
 import gtsam
 import numpy as np
 
-from factors.jit import njit
 from factors.world_point import world_point_factor
 from vio.backend import graph
 from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Obs
 from vio.backend.motion import motion_table
+from vio.backend.point_outliers import point_row_errors, rejections
 from vio.backend.td_velocity import points_velocities
 from vio.backend.track_arrays import gather, run_starts
 
@@ -49,7 +51,9 @@ class PointTrack:
     """A world-point landmark: its key, in-window observations by keyframe, the keyframes
     and smoother index of its main factor (None before the update records it); ``rows``:
     (frames, ``Obs.packed`` rows, row offsets) of its last factor built, for the outlier
-    check (``track_arrays.gather``'s arrays without the gather)."""
+    check (``track_arrays.gather``'s arrays without the gather); ``retired``: the outlier
+    check took one of its observations out, and it takes no new ones (the id is free again
+    once the point has left the window)."""
 
     lid: int
     key: int
@@ -57,6 +61,7 @@ class PointTrack:
     frames: list[int] = field(default_factory=list)
     index: int | None = None
     rows: tuple[tuple[int, ...], np.ndarray, np.ndarray] | None = None
+    retired: bool = False
 
 
 class PointTracks:
@@ -64,12 +69,13 @@ class PointTracks:
 
     def __init__(self, est: "Estimator") -> None:
         self.est = est
-        self.tracks: dict[int, PointTrack] = {}
+        self.tracks: dict[int, PointTrack] = {}   # by landmark id
         self._pending: list[tuple[PointTrack, int]] = []   # (track, position in g)
         self._next_key = 0
         self._table = None     # the owner's motion table of the current update (callable)
         self._early: dict = {}            # (key, leaving frames) -> farewell factor (prefetch)
         self._early_values = None         # the estimate they were built at
+        self._held = None                 # (outlier graph, its rebuilt main factors' slots in it)
 
     def begin_update(self, table) -> None:
         """The motion table (``vio.backend.motion.motion_table``) for this update's velocities."""
@@ -84,6 +90,7 @@ class PointTracks:
     def reset(self) -> None:
         self.tracks = {}
         self._pending = []
+        self._held = None
         self._early, self._early_values = {}, None
 
     def prefetch(self, leave: set[int]) -> None:
@@ -115,10 +122,13 @@ class PointTracks:
         return sum(1 for p in self.tracks.values() if k in p.obs)
 
     def observe(self, lid: int, k: int, obs: Obs) -> bool:
-        """Record keyframe ``k``'s observation of ``lid`` if it is a world point."""
+        """Record keyframe ``k``'s observation of ``lid`` if it is a world point (a retired
+        point's is ignored); False if ``lid`` is not one."""
         pt = self.tracks.get(lid)
         if pt is None:
             return False
+        if pt.retired:
+            return True
         pt.obs[k] = obs
         return True
 
@@ -240,11 +250,15 @@ class PointTracks:
             pt.index = remap.get(pt.index)
 
     def outlier_removals(self, values: gtsam.Values, g: gtsam.NonlinearFactorGraph, stamps: dict,
-                         removals: list[int]) -> list[int]:
-        """Ids of points whose reprojection error in their main factor exceeds
-        ``outlier_px`` (``health.outlier_limit_px``; observations moved by the current td)
-        or that leave the depth range: the factor is removed and a weak prior keeps the key
-        determined until the smoother marginalizes it."""
+                         removals: list[int]) -> tuple[list[int], list[int]]:
+        """The outlier check (``vio.backend.point_outliers``) on every point's main factor:
+        observations whose reprojection error exceeds ``outlier_px``
+        (``health.outlier_limit_px``; moved by the current td). A point that only loses
+        those observations gets its main factor rebuilt from the others in ``g`` (slots
+        recorded when :meth:`arm` hands ``g`` to the update); a point rejected whole
+        (``VisionConfig.outlier_obs`` off, too few consistent observations, a depth out of
+        range) has its factor removed and a weak prior keeps the key determined until the
+        smoother marginalizes it. Returns (ids dropped, ids trimmed)."""
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         td = float(values.atVector(graph.TD)[0]) if vc.use_td and values.exists(graph.TD) else 0.0
@@ -252,27 +266,46 @@ class PointTracks:
         cand = [(lid, pt) for lid, pt in self.tracks.items()
                 if pt.index is not None and values.exists(pt.key) and all(f in pos for f in pt.frames)]
         if not cand:
-            return []
+            return [], []
         # every candidate's observations in one array, one compiled pass (~60 points of ~8
         # observations: 3.8 -> ~0.6 ms a keyframe on generated MH_03)
         ob, start, off = self._rows([pt for _, pt in cand])
         j = np.array([pos[f] for _, pt in cand for f in pt.frames], dtype=np.int64)
         P = np.array([values.atVector(pt.key) for _, pt in cand], dtype=float).reshape(-1, 3)
         vel = graph._td_velocity(ob[:, 2:4], vc.td_velocity_max)
-        worst = np.empty(len(cand))
-        point_worst_errors(start, j, np.ascontiguousarray(ob[:, :2]), vel, off, P, R, t, td,
-                           float(vc.min_depth_m), float(vc.max_depth_m), worst)
-        bad = []
-        limit = outlier_limit_px(self.est)
-        for (lid, pt), p, e in zip(cand, P, worst * fx):
-            if e > limit:
-                removals.append(pt.index)
-                g.add(gtsam.PriorFactorVector(pt.key, p.copy(), WEAK_POINT))
-                stamps[pt.key] = 0.0
-                bad.append(lid)
-        for lid in bad:
+        rows = np.empty(len(ob))
+        point_row_errors(start, j, np.ascontiguousarray(ob[:, :2]), vel, off, P, R, t, td,
+                         float(vc.min_depth_m), float(vc.max_depth_m), rows)
+        dropped, trimmed = rejections(rows * fx, start, outlier_limit_px(self.est), vc.outlier_obs,
+                                      vc.outlier_obs_agree)
+        for i in dropped:
+            lid, pt = cand[i]
+            removals.append(pt.index)
+            g.add(gtsam.PriorFactorVector(pt.key, P[i].copy(), WEAK_POINT))
+            stamps[pt.key] = 0.0
             del self.tracks[lid]
-        return bad
+        jobs: list = []
+        held = self._pending
+        self._pending = []
+        for i, bad in trimmed.items():
+            lid, pt = cand[i]
+            removals.append(pt.index)
+            for f, b in zip(pt.frames, bad):
+                if b:
+                    del pt.obs[f]
+            self._main(pt, sorted(pt.obs), g, jobs)
+            pt.retired = True
+        self._fill(g, jobs)
+        self._held, self._pending = (g, self._pending), held
+        return [cand[i][0] for i in dropped], [cand[i][0] for i in trimmed]
+
+    def arm(self, g: gtsam.NonlinearFactorGraph) -> None:
+        """``g`` (an outlier check's graph) goes into the next update: the main factors it
+        rebuilt get their slots from that update's indices. A graph the estimator dropped
+        (a restart cleared the held update) is never armed, and its factors never recorded."""
+        if self._held is not None and self._held[0] is g:
+            self._pending += self._held[1]
+        self._held = None
 
     def _rows(self, pts: list[PointTrack]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``gather``'s (rows, start, offsets) of the points' observations in ``pt.frames``:
@@ -294,40 +327,3 @@ class PointTracks:
                 ids.append(lid)
                 pts.append(np.asarray(values.atVector(pt.key), float))
         return ids, pts
-
-
-@njit
-def point_worst_errors(start: np.ndarray, j: np.ndarray, uv: np.ndarray, vel: np.ndarray, off: np.ndarray,
-                       P: np.ndarray, R: np.ndarray, t: np.ndarray, td: float, min_depth: float,
-                       max_depth: float, out: np.ndarray) -> None:
-    """``out[i]``: the worst normalized reprojection error of point ``P[i]`` (world) over its
-    observations ``start[i]:start[i + 1]`` (cam0 of window row ``j``, ``R_w_c`` / ``t_w_c``),
-    each moved by ``(td + off) vel``; inf when a depth leaves [min_depth, max_depth], NaN
-    when an error is NaN (as numpy's max)."""
-    for i in range(P.shape[0]):
-        worst = 0.0
-        for o in range(start[i], start[i + 1]):
-            f = j[o]
-            q2 = (R[f, 0, 2] * (P[i, 0] - t[f, 0]) + R[f, 1, 2] * (P[i, 1] - t[f, 1])
-                  + R[f, 2, 2] * (P[i, 2] - t[f, 2]))
-            if not (q2 >= min_depth and q2 <= max_depth):
-                worst = np.inf
-                break
-        if worst == np.inf:
-            out[i] = worst
-            continue
-        for o in range(start[i], start[i + 1]):
-            f = j[o]
-            d0, d1, d2 = P[i, 0] - t[f, 0], P[i, 1] - t[f, 1], P[i, 2] - t[f, 2]
-            q0 = R[f, 0, 0] * d0 + R[f, 1, 0] * d1 + R[f, 2, 0] * d2
-            q1 = R[f, 0, 1] * d0 + R[f, 1, 1] * d1 + R[f, 2, 1] * d2
-            q2 = R[f, 0, 2] * d0 + R[f, 1, 2] * d1 + R[f, 2, 2] * d2
-            s = td + off[o]
-            ex = q0 / q2 - (uv[o, 0] - s * vel[o, 0])
-            ey = q1 / q2 - (uv[o, 1] - s * vel[o, 1])
-            e = np.sqrt(ex * ex + ey * ey)
-            if np.isnan(e):
-                worst = e
-                break
-            worst = max(worst, e)
-        out[i] = worst

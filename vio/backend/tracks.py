@@ -281,7 +281,10 @@ class LandmarkManager(TrackFactorBuilder):
         it afresh (as VINS-Mono does); only an id dropped ``max_rejections`` times is ignored
         for good. Rejecting at once starved the estimator on long tracks: a track that entered
         at the default depth while still and failed at take-off stayed tracked but ignored,
-        and MH_04 ran with 2-18 landmarks for 30 s (ATE 0.95 m; with restarts 0.18 m)."""
+        and MH_04 ran with 2-18 landmarks for 30 s (ATE 0.95 m; with restarts 0.18 m).
+        World points (``PointTracks.outlier_removals``) may lose only an isolated outlier
+        observation instead (``VisionConfig.outlier_obs``): those count in ``n`` (their
+        factors are replaced in the same update) but do not strike the id."""
         vc = self.est.cfg.vision
         fx = self.est.cam.intrinsics[0]
         g, stamps, removals, n = gtsam.NonlinearFactorGraph(), {}, [], 0
@@ -304,10 +307,15 @@ class LandmarkManager(TrackFactorBuilder):
                 del self.tracks[lid]
                 self._strike(lid)
                 n += 1
-        for lid in self.points.outlier_removals(values, g, stamps, removals):
+        dropped, trimmed = self.points.outlier_removals(values, g, stamps, removals)
+        for lid in dropped:
             self._strike(lid)
-            n += 1
+        n += len(dropped) + len(trimmed)
         return g, stamps, removals, n
+
+    def arm(self, g: gtsam.NonlinearFactorGraph) -> None:
+        """``g``, an outlier check's graph, goes into the next update (``PointTracks.arm``)."""
+        self.points.arm(g)
 
     def _strike(self, lid: int) -> None:
         """Count a rejection of ``lid``; at ``max_rejections`` it is ignored for good."""
