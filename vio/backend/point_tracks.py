@@ -285,8 +285,7 @@ class PointTracks:
             stamps[pt.key] = 0.0
             del self.tracks[lid]
         jobs: list = []
-        held = self._pending
-        self._pending = []
+        n0 = len(self._pending)     # the rebuilt factors' slots wait for arm(g), not the next update
         for i, bad in trimmed.items():
             lid, pt = cand[i]
             removals.append(pt.index)
@@ -296,7 +295,8 @@ class PointTracks:
             self._main(pt, sorted(pt.obs), g, jobs)
             pt.retired = True
         self._fill(g, jobs)
-        self._held, self._pending = (g, self._pending), held
+        self._held = (g, self._pending[n0:])
+        del self._pending[n0:]
         return [cand[i][0] for i in dropped], [cand[i][0] for i in trimmed]
 
     def arm(self, g: gtsam.NonlinearFactorGraph) -> None:
