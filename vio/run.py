@@ -242,20 +242,27 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     if cfg.live:
         pipe.close()     # the backend's last state (after the frame path's wall time)
     res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
-    res.keyframes = pipe.n_keyframes
-    res.recoveries = pipe.recoveries if cfg.live else pipe.est.recoveries
-    if not cfg.live:   # the live backend's counters stay in its process
-        res.init = pipe.init_info
-        res.init_wait = pipe.init_wait
-        res.restarts = pipe.est.divergences
-        res.reinits = pipe.reinit.count
-        res.realigns = pipe.est.realigned
-        res.qr_resolves = pipe.est.qr_resolves
-        res.point_holds = pipe.est.point_holds
-        res.imu_gaps = len(pipe.imu_gaps)
-        res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
-        res.imu_dropped = pipe.imu_dropped
+    _counters(res, pipe, cfg.live)
     return res
+
+
+def _counters(res: RunResult, pipe, live: bool) -> None:
+    """The run's counters from the pipeline into ``res`` (keyframes and solver recoveries
+    only when ``live``: the live backend's other counters stay in its process)."""
+    res.keyframes = pipe.n_keyframes
+    res.recoveries = pipe.recoveries if live else pipe.est.recoveries
+    if live:
+        return
+    res.init = pipe.init_info
+    res.init_wait = pipe.init_wait
+    res.restarts = pipe.est.divergences
+    res.reinits = pipe.reinit.count
+    res.realigns = pipe.est.realigned
+    res.qr_resolves = pipe.est.qr_resolves
+    res.point_holds = pipe.est.point_holds
+    res.imu_gaps = len(pipe.imu_gaps)
+    res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
+    res.imu_dropped = pipe.imu_dropped
 
 
 def _loop(it: Iterator[FramePacket], stage: Callable | None, pipe, res: RunResult, bar,
