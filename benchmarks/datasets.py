@@ -21,7 +21,8 @@ development (the lead developed on seed 0, the direct mode on seeds 3 and 5), 20
 rolling shutter and td = 10 ms (seed 12), mono (cam0 only) with td = 10 ms (seed 13),
 stereo with smooth exposure changes and td = 0 (seed 14). ``stereo`` runs on the
 three stereo ones, ``direct`` and ``hybrid`` on the exposure-change one, ``mono`` on
-seed 13.
+seed 13. ``stereo`` and ``mono`` also run their real folder again with the camera stamps
+moved by issue 20's offsets (``SHIFT_TD_S``; copies with the images linked, not copied).
 
 Generated data goes to a cache folder (``$VIO_BENCH_CACHE`` or ``~/.cache/vio-bench``),
 keyed by a hash of the generator settings (``TrackGenConfig`` or ``SimConfig``), never
@@ -72,7 +73,9 @@ class DatasetSpec:
     ``overrides``: dotted-path ``PipelineConfig`` overrides of the run (e.g. online
     extrinsic calibration); ``calib_error``: (deg, mm) error put into cam0's T_BS of
     a copy of the data, whose true T_b_c goes to ``calib_truth.json`` (calibration runs
-    score the estimate against it)."""
+    score the estimate against it); ``stamp_shift_s``: the camera stamps of a copy of the
+    real ``source`` moved by this much (``vio.inject.shift_camera_stamps``), an offset
+    of ``-stamp_shift_s`` the source did not have."""
 
     name: str
     mode: str
@@ -85,6 +88,7 @@ class DatasetSpec:
     sim: tuple[tuple[str, object], ...] | None = None
     overrides: tuple[tuple[str, object], ...] = ()
     calib_error: tuple[float, float] | None = None
+    stamp_shift_s: float = 0.0
 
     def pipeline_overrides(self) -> dict:
         """Dotted-path ``PipelineConfig`` overrides of this run (``run_all.pipeline_config``)."""
@@ -92,7 +96,7 @@ class DatasetSpec:
 
     @property
     def generated(self) -> bool:
-        return self.gen is not None or self.sim is not None
+        return self.gen is not None or self.sim is not None or self.stamp_shift_s != 0.0
 
     def sim_config(self):
         """The ``SimConfig`` of a rendered sequence."""
@@ -108,6 +112,8 @@ class DatasetSpec:
         """Cache key: source and every generator setting (every ``SimConfig`` field
         for rendered sequences, so a changed simulator default makes a new folder)."""
         from vio.config import to_dict
+        if self.sim is None and self.gen is None:   # a real folder's copy with moved stamps
+            return settings_key([str(self.source), {"stamp_shift_s": self.stamp_shift_s}])
         cfg = self.sim_config() if self.sim is not None else self.gen_config()
         return settings_key([str(self.source), to_dict(cfg)] + ([list(self.calib_error)] if self.calib_error else []))
 
@@ -251,9 +257,24 @@ def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
     real = ([DatasetSpec("MH_01_real_stereo", mode, MH_01_STEREO, None, 0.0, group="MH_01_real_stereo",
                          max_frames=cap)] if want_stereo else
             [DatasetSpec("MH_05_real_mono", mode, MH_05_MONO, None, None, group="MH_05_real_mono", max_frames=cap)])
+    if mode in ("stereo", "mono") and not quick:
+        real += [shifted_spec(real[0], td) for td in SHIFT_TD_S]
     return real + [sim_spec(mode, label, seed, seconds, stereo, **extra)
                    for label, seed, extra, stereo in SIM_SEQUENCES
                    if stereo == want_stereo and (not photometric or label in PHOTOMETRIC_SEQUENCES)]
+
+
+# issue 20's offsets put on the real images (the frames' stamps moved by -td): td must come
+# out at the source's own offset plus td, on real images as on every track generator
+SHIFT_TD_S = (-0.020, 0.012, 0.025)
+
+
+def shifted_spec(spec: DatasetSpec, td_s: float) -> DatasetSpec:
+    """``spec`` (a real image folder) on a copy whose camera stamps carry an extra offset
+    ``td_s`` (s): named ``<name>/td<ms>ms``, true td = the source's (EuRoC's cameras and IMU
+    are synchronized in hardware: 0 where the source's is unknown) + ``td_s``."""
+    return dataclasses.replace(spec, name=f"{spec.name}/td{td_s * 1e3:g}ms", stamp_shift_s=-td_s,
+                               td_true_s=(spec.td_true_s or 0.0) + td_s, twin=spec.name)
 
 
 MODES: dict[str, Mode] = {
@@ -298,9 +319,12 @@ def prepare(spec: DatasetSpec, cache: Path | None = None) -> Path:
     if spec.sim is not None:
         from vio.sim import simulate
         simulate(out, spec.sim_config(), overwrite=True)
-    else:
+    elif spec.gen is not None:
         from vio.sim.tracks import generate_tracks
         generate_tracks(spec.source, out, spec.gen_config())
+    else:
+        from vio.inject import copy_dataset, shift_camera_stamps
+        shift_camera_stamps(copy_dataset(spec.source, out), spec.stamp_shift_s)
     if spec.calib_error is not None:
         perturb_extrinsic(out, *spec.calib_error)
     (out / ".done").write_text(spec.name + "\n")
@@ -323,7 +347,7 @@ def true_td_s(spec: DatasetSpec, path: Path) -> float | None:
     ``sim_truth.yaml``; nearest-row poses put EuRoC's td 12 ms frames 10 ms after their
     stamps, on the 200-Hz ground-truth grid). Sets cached before the field existed render
     at their nominal td, except nearest-row ones, which :func:`prepare` generates again."""
-    if spec.td_true_s is None or not spec.generated or spec.sim is not None:
+    if spec.td_true_s is None or spec.gen is None:
         return spec.td_true_s
     import yaml
     f = path / "sim_truth.yaml"

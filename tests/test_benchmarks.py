@@ -6,6 +6,7 @@ assertions (numbers live in benchmarks/).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -110,7 +111,12 @@ def test_readme_section_only_between_markers(tmp_path, capsys):
 def test_registry_lists_image_specs():
     import datasets as ds
     specs, skipped = ds.registry(quick=False, modes=["stereo", "mono", "direct", "hybrid"])
-    real = [s for s in specs if s.sim is None]
+    real = [s for s in specs if s.sim is None and not s.stamp_shift_s]
+    moved = [s for s in specs if s.stamp_shift_s]
+    # the real stereo and mono folders again with issue 20's offsets (not in the photometric modes)
+    assert sorted((s.mode, s.td_true_s) for s in moved) == ([] if not real else sorted(
+        (m, td) for m in ("mono", "stereo") for td in ds.SHIFT_TD_S))
+    assert all(s.twin == s.name.split("/td")[0] and s.stamp_shift_s == -s.td_true_s for s in moved)
     # the real MH_01 stereo images run in stereo, direct and hybrid, the real MH_05 cam0
     # images (td unknown) in mono (skipped, with the reason, where ../shared is absent)
     assert sorted(s.mode for s in real) == (["direct", "hybrid", "mono", "stereo"] if real else [])
@@ -325,6 +331,39 @@ def test_variant_rows_get_their_own_table_with_the_twin_ratio():
             assert diff == set(VARIANTS[v]), (v, diff)
             n += 1
     assert n >= 12
+
+
+def test_moved_stamps_copy_carries_the_offset_and_its_rows_are_summarised(tmp_path):
+    """``shifted_spec``: a copy of a real image folder whose camera stamps moved by -td (the
+    image files kept), its own cache folder; the report's line compares each moved run with
+    the unmoved one."""
+    import datasets as ds
+    src = ds.DatasetSpec("MH_01_real_stereo", "stereo", ds.MH_01_STEREO, None, 0.0, group="MH_01_real_stereo")
+    spec = ds.shifted_spec(src, 0.012)
+    assert (spec.name, spec.td_true_s, spec.stamp_shift_s, spec.twin) == ("MH_01_real_stereo/td12ms", 0.012,
+                                                                           -0.012, "MH_01_real_stereo")
+    assert spec.generated and spec.key() != ds.shifted_spec(src, 0.025).key()
+    assert ds.shifted_spec(dataclasses.replace(src, td_true_s=None), -0.02).td_true_s == -0.02
+    if not src.source.exists():
+        pytest.skip("euroc_MH_01_stereo_synimu not found (../shared/data)")
+    out = ds.prepare(spec, cache=tmp_path)
+    assert ds.true_td_s(spec, out) == 0.012
+    from vio.io.euroc import load_euroc
+    a, b = load_euroc(src.source), load_euroc(out)
+    np.testing.assert_array_equal(b.cam0.t_ns, a.cam0.t_ns - 12_000_000)
+    np.testing.assert_array_equal(b.cam1.t_ns, a.cam1.t_ns - 12_000_000)
+    assert [p.name for p in b.cam0.files[:3]] == [p.name for p in a.cam0.files[:3]]
+    np.testing.assert_array_equal(b.imu.t_ns, a.imu.t_ns)
+
+    def row(name, td_true, td, ate, twin=None):
+        return {"dataset": name, "mode": "mono", "group": "R", "twin": twin, "td_true_ms": td_true,
+                "ours": {"ate_rmse": ate, "td_ms": td, "td_err_ms": None if td_true is None else td - td_true},
+                "baseline": {}}
+    acc = {"runs": [row("R", None, -0.1, 0.05), row("R/td12ms", 12.0, 11.8, 0.06, "R"),
+                    row("R/td-20ms", -20.0, -19.7, 0.07, "R")]}
+    line = report.real_td_lines(acc)[-1]
+    assert "offsets -20, +12 ms; 2 runs" in line and "td error max 0.30 ms" in line
+    assert "plus the offset max 0.40 ms" in line and "max 1.40 (1 of 2 within 1.25x)" in line
 
 
 def test_stretch_copy_starts_the_cameras_at_the_frame(tmp_path):

@@ -8,7 +8,8 @@ like the original. Times are seconds relative to the first IMU sample of the sou
 - :func:`copy_dataset` copies a folder (optionally cut to ``[start_s, end_s]``);
 - :func:`imu_gap` removes the IMU rows of ``[t_s, t_s + dur_s)``;
 - :func:`imu_spike` overwrites the accelerometer/gyro of the row nearest ``t_s``;
-- :func:`drop_frames` removes the camera frames (and their feature rows) of a stretch.
+- :func:`drop_frames` removes the camera frames (and their feature rows) of a stretch;
+- :func:`shift_camera_stamps` moves every camera stamp, as a camera-IMU time offset does.
 """
 
 from __future__ import annotations
@@ -134,4 +135,21 @@ def drop_frames(root: str | Path, t_s: float, dur_s: float, t0_ns: int | None = 
     n = _edit_csv(mav0 / "cam0" / "data.csv", keep)
     for p in (mav0 / "cam0" / "features.csv", mav0 / "cam1" / "data.csv"):
         _edit_csv(p, keep)
+    return n
+
+
+def shift_camera_stamps(root: str | Path, dt_s: float) -> int:
+    """Move every camera stamp (both cameras' ``data.csv`` and cam0's feature rows) by
+    ``dt_s`` s, the image file names kept: the frames then carry an extra camera-IMU
+    offset of ``td = -dt_s`` (``t_imu = t_stamp + td``). Returns the number of cam0
+    frames moved."""
+    mav0 = find_mav0(root)
+    dt = int(round(dt_s * 1e9))
+
+    def move(t: int, line: str) -> str:
+        return str(t + dt) + line[len(line.split(",", 1)[0]):]
+
+    n = _edit_csv(mav0 / "cam0" / "data.csv", move)
+    for p in (mav0 / "cam0" / "features.csv", mav0 / "cam1" / "data.csv"):
+        _edit_csv(p, move)
     return n
