@@ -155,9 +155,9 @@ def real_td_lines(acc: dict) -> list[str]:
     (``datasets.SHIFT_TD_S``, rows with a ``twin``: the unmoved run): td against the truth,
     and against the unmoved run's estimate plus the offset put in (what the source's own,
     unknown offset does not enter), and the ATE against the unmoved run's."""
-    runs = {r["dataset"]: r for r in acc.get("runs", []) if is_image(r)}
-    moved = [(r, runs[r["twin"]]) for r in runs.values() if r.get("twin") in runs
-             and r["ours"].get("td_ms") is not None and runs[r["twin"]]["ours"].get("td_ms") is not None]
+    runs = {(r["mode"], r["dataset"]): r for r in acc.get("runs", []) if is_image(r)}   # a name runs in 3 modes
+    moved = [(r, runs[r["mode"], r["twin"]]) for r in runs.values() if (r["mode"], r.get("twin")) in runs
+             and r["ours"].get("td_ms") is not None and runs[r["mode"], r["twin"]]["ours"].get("td_ms") is not None]
     if not moved:
         return []
     err = [abs(r["ours"]["td_err_ms"]) for r, _ in moved if r["ours"].get("td_err_ms") is not None]

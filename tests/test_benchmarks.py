@@ -360,7 +360,8 @@ def test_moved_stamps_copy_carries_the_offset_and_its_rows_are_summarised(tmp_pa
                 "ours": {"ate_rmse": ate, "td_ms": td, "td_err_ms": None if td_true is None else td - td_true},
                 "baseline": {}}
     acc = {"runs": [row("R", None, -0.1, 0.05), row("R/td12ms", 12.0, 11.8, 0.06, "R"),
-                    row("R/td-20ms", -20.0, -19.7, 0.07, "R")]}
+                    row("R/td-20ms", -20.0, -19.7, 0.07, "R"),
+                    dict(row("R", 0.0, 3.0, 0.01), mode="hybrid")]}    # the same name in another mode
     line = report.real_td_lines(acc)[-1]
     assert "offsets -20, +12 ms; 2 runs" in line and "td error max 0.30 ms" in line
     assert "plus the offset max 0.40 ms" in line and "max 1.40 (1 of 2 within 1.25x)" in line
