@@ -363,6 +363,7 @@ def test_moved_stamps_copy_carries_the_offset_and_its_rows_are_summarised(tmp_pa
                     row("R/td-20ms", -20.0, -19.7, 0.07, "R"),
                     dict(row("R", 0.0, 3.0, 0.01), mode="hybrid")]}    # the same name in another mode
     line = report.real_td_lines(acc)[-1]
+    assert [r["dataset"] for r in report._unmoved(acc["runs"])] == ["R", "R"]   # not in the headline ratios
     assert "offsets -20, +12 ms; 2 runs" in line and "td error max 0.30 ms" in line
     assert "plus the offset max 0.40 ms" in line and "max 1.40 (1 of 2 within 1.25x)" in line
 
