@@ -8,7 +8,8 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from vio.run import PHOTOMETRIC_MODES, STEREO_MODES, load_config, resolve_mode, run_dataset, summary
+from vio.run import PHOTOMETRIC_MODES, STEREO_MODES, RunResult, load_config, resolve_mode, run_dataset, summary
+from vio.trajectory import write_tum
 
 # |td estimate - the run's starting offset| (s) from which a mono run suggests rerunning at
 # the estimate. Real MH_05 mono from 17 start frames (benchmarks/README.md, stop 48): with its
@@ -18,7 +19,7 @@ from vio.run import PHOTOMETRIC_MODES, STEREO_MODES, load_config, resolve_mode, 
 TD_HINT_S = 0.003
 
 
-def td_hint(res, td0_s: float, mode: str) -> str | None:
+def td_hint(res: RunResult, td0_s: float, mode: str) -> str | None:
     """The summary's note when a monocular run's td estimate ends at least ``TD_HINT_S``
     from the offset it started at (``td0_s``, s): mono's initialization aligned its first
     seconds there, and the window keeps the scale it found; None otherwise."""
@@ -30,7 +31,6 @@ def td_hint(res, td0_s: float, mode: str) -> str | None:
     return (f"td note         the estimate is {1e3 * (td - td0_s):+.1f} ms from the offset this run started at; "
             f"mono's initialization aligned its first seconds at that offset and the window keeps the scale it "
             f"found: for the best trajectory rerun with --td {td:.4f}")
-from vio.trajectory import write_tum
 
 
 def _note_cold_kernels(mode: str) -> None:
