@@ -110,3 +110,27 @@ def test_cache_is_warm_after_compiling():
     compile_kernels()
     assert cache_is_warm(track_eval)
     assert not cache_is_warm(lambda: 0)
+
+
+def test_kernel_start_up_skips_numba_blas_probe_and_blas_still_works():
+    """``factors.jit`` imports Numba's array-math module without ``scipy.linalg`` (its BLAS
+    probe costs 0.15-0.25 s a process); a compiled kernel calling BLAS still gets it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys\n"
+        "import numpy as np\n"
+        "import factors.jit\n"
+        "import numba.np.arraymath\n"
+        "assert 'scipy.linalg' not in sys.modules, 'the BLAS probe imported scipy.linalg'\n"
+        "from numba import njit\n"
+        "mm = njit(lambda a, b: a @ b)\n"
+        "inv = njit(lambda a: np.linalg.inv(a))\n"
+        "a = np.array([[2.0, 1.0], [0.5, 3.0]])\n"
+        "assert np.allclose(mm(a, a), a @ a) and np.allclose(inv(a), np.linalg.inv(a))\n"
+        "print('ok')\n")
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
