@@ -277,3 +277,19 @@ def test_missing_images_drop_their_frames_with_a_warning(tmp_path):
         p.unlink()
     with pytest.raises(DataError, match="none of its 95 images exists"):
         load_euroc(root)
+
+
+def test_tum_round_trip_from_a_string_path_and_missing_file_named(tmp_path):
+    """``read_tum`` takes the path as a user passes it (a string, as ``write_tum`` does);
+    a missing file is a ``DataError`` naming it, not an AttributeError."""
+    import gtsam
+    from vio.io.euroc import read_tum
+    from vio.trajectory import write_tum
+    poses = [gtsam.Pose3(gtsam.Rot3.Yaw(0.1 * k), np.array([k, 0.5, 0.0])) for k in range(3)]
+    out = str(tmp_path / "est.txt")
+    write_tum(out, [1_000_000_000 + k * 50_000_000 for k in range(3)], poses)
+    back = read_tum(out)
+    assert back.t_ns.tolist() == [1_000_000_000, 1_050_000_000, 1_100_000_000]
+    assert np.allclose(back.p_w[:, 0], [0, 1, 2])
+    with pytest.raises(DataError, match="nope.txt"):
+        read_tum(str(tmp_path / "nope.txt"))

@@ -26,8 +26,9 @@ class NumericTable:
     lines: np.ndarray
 
 
-def read_text_lines(path: Path) -> list[str]:
+def read_text_lines(path: str | Path) -> list[str]:
     """All lines of a text file, or a ``DataError`` if it is missing or unreadable."""
+    path = Path(path)
     if not path.is_file():
         raise DataError(path, "file not found")
     try:
@@ -41,7 +42,7 @@ def parse_seconds_to_ns(text: str) -> int:
     return int((Decimal(text) * 1_000_000_000).to_integral_value())
 
 
-def read_numeric(path: Path, n_values: int | tuple[int, ...], *, delimiter: str | None = ",",
+def read_numeric(path: str | Path, n_values: int | tuple[int, ...], *, delimiter: str | None = ",",
                  time_in_seconds: bool = False, min_values: int | None = None) -> NumericTable:
     """Parse ``timestamp, v1, ..., vC`` rows; lines starting with ``#`` and blank lines skip.
 

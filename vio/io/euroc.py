@@ -259,7 +259,7 @@ def read_groundtruth(gt_dir: Path, name: str = "data.csv") -> GroundTruth | None
     return None
 
 
-def read_tum(path: Path) -> GroundTruth:
+def read_tum(path: str | Path) -> GroundTruth:
     """TUM trajectory ``t[s] tx ty tz qx qy qz qw`` as a ``GroundTruth``."""
     table = read_numeric(path, 7, delimiter=None, time_in_seconds=True)
     check_increasing(table)
