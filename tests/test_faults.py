@@ -304,15 +304,21 @@ def test_a_dropped_packet_carries_its_imu_to_the_next_frame(tmp_path, caplog):
     cfg = default_config("features")
     drop = 60
 
+    pipes = []
+
     def run(pkts):
-        pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
-        return [o for p in pkts for o in pipe.process(p)]
+        pipes.append(Pipeline(data.imu_calib, data.cam0.calib, cfg))
+        return [o for p in pkts for o in pipes[-1].process(p)]
 
     pkts = list(packets(data.imu, data.cam0.t_ns, 0.0, data.features))
     pkts[drop] = dataclasses.replace(pkts[drop], dropped="an image that does not decode")
     with caplog.at_level(logging.WARNING, logger="vio.pipeline"):
         outs = run(pkts)
     assert "frame dropped (an image that does not decode)" in caplog.text
+    assert pipes[-1].frames_dropped == 1
+    from vio.run import RunResult, summary
+    faults = [ln for ln in summary(RunResult(frames_dropped=1), data) if ln.startswith("faults")]
+    assert faults and faults[0].endswith("1 frame(s) dropped (image missing or unreadable)"), faults
     assert pkts[drop].t_ns not in {o.t_ns for o in outs} and pkts[drop + 1].t_ns in {o.t_ns for o in outs}
     t_drop = (pkts[drop].t_ns - data.imu.t_ns[0]) * 1e-9
     assert drop_frames(root, t_drop - 0.01, 0.02) == 1     # the same data without that frame

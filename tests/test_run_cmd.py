@@ -26,3 +26,37 @@ def test_no_td_note_where_the_offset_does_not_cost_or_nothing_was_estimated():
     assert td_hint(_res(0.0117, init=False), 0.0, "mono") is None              # never initialized
     assert td_hint(SimpleNamespace(init=object(), outputs=[]), 0.0, "mono") is None
     assert td_hint(_res(float("nan")), 0.0, "mono") is None
+
+
+def test_log_records_during_the_progress_bar_get_lines_of_their_own(capsys):
+    """A warning while ``vio run`` shows its progress bar (a dropped frame, an IMU gap) is
+    written above the bar, not into its line; the console handler keeps its level and
+    format, and gets its stream back afterwards."""
+    import logging
+    import sys
+
+    from tqdm import tqdm
+
+    from vio.run import _log_above
+    root, log = logging.getLogger(), logging.getLogger("vio.test_progress")
+    h = logging.StreamHandler(sys.stderr)
+    h.setLevel(logging.WARNING)
+    h.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    level = root.level
+    root.addHandler(h)
+    root.setLevel(logging.INFO)
+    try:
+        bar = tqdm(total=3, file=sys.stderr)
+        bar.update(1)
+        with _log_above(bar):
+            log.warning("frame dropped")
+            log.info("an info record the handler's level drops")
+            bar.update(1)
+        bar.close()
+        assert h.stream is sys.stderr
+    finally:
+        root.removeHandler(h)
+        root.setLevel(level)
+    lines = capsys.readouterr().err.replace("\r", "\n").split("\n")
+    assert "WARNING vio.test_progress: frame dropped" in lines
+    assert not any("info record" in ln for ln in lines)

@@ -126,6 +126,7 @@ class Pipeline:
         self.init_wait = "no frame"       # why no initialization yet (the run summary's)
         self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
         self.imu_dropped = 0
+        self.frames_dropped = 0                          # images missing or unreadable
         self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
 
     # -------------------------------------------------------------- helpers
@@ -170,6 +171,7 @@ class Pipeline:
         if pkt.dropped:       # no vision for this frame: its IMU goes with the next one
             log.warning("t=%d ns: frame dropped (%s); its IMU carries over to the next frame", pkt.t_ns,
                         pkt.dropped)
+            self.frames_dropped += 1
             self._held = pkt if self._held is None else carry_imu(self._held, pkt)
             return []
         if self._held is not None:

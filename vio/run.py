@@ -3,9 +3,11 @@ summary (``vio run`` itself: ``vio.run_cmd``)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import logging
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +49,8 @@ class RunResult:
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
     imu_dropped: int = 0
+    frames_dropped: int = 0
+    """Frames skipped because their image was missing or unreadable (IMU carried over)."""
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
     init: InitInfo | None = None
@@ -226,7 +230,8 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     gc.enable()   # (`vio run` keeps it off during its start-up)
     t0 = time.perf_counter()
     try:
-        _loop(it, stage, pipe, res, bar, cfg.live)
+        with _log_above(bar):
+            _loop(it, stage, pipe, res, bar, cfg.live)
     except BaseException:
         if cfg.live:
             pipe.close(wait=False)
@@ -246,6 +251,36 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     return res
 
 
+class _AboveBar:
+    """A console stream whose writes go above the progress bars (``tqdm.write``)."""
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        from tqdm import tqdm
+        tqdm.write(text.rstrip("\n"), file=self.stream)
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+@contextlib.contextmanager
+def _log_above(bar):
+    """With a progress bar, the root logger's console handlers write above it instead of
+    into its line (their levels, formats and filters unchanged); without one, nothing."""
+    handlers = [] if bar is None else [
+        h for h in logging.getLogger().handlers
+        if type(h) is logging.StreamHandler and h.stream in (sys.stderr, sys.stdout)]
+    old = [h.setStream(_AboveBar(h.stream)) for h in handlers]
+    try:
+        yield
+    finally:
+        for h, stream in zip(handlers, old):
+            h.setStream(stream)
+
+
 def _counters(res: RunResult, pipe, live: bool) -> None:
     """The run's counters from the pipeline into ``res`` (keyframes and solver recoveries
     only when ``live``: the live backend's other counters stay in its process)."""
@@ -263,6 +298,7 @@ def _counters(res: RunResult, pipe, live: bool) -> None:
     res.imu_gaps = len(pipe.imu_gaps)
     res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
     res.imu_dropped = pipe.imu_dropped
+    res.frames_dropped = pipe.frames_dropped
 
 
 def _loop(it: Iterator[FramePacket], stage: Callable | None, pipe, res: RunResult, bar,
@@ -295,6 +331,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
                 if res.point_holds else ""),
              f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
+             + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
+                if res.frames_dropped else "")
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
              + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")]
     if res.init is None:
