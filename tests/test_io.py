@@ -291,5 +291,7 @@ def test_tum_round_trip_from_a_string_path_and_missing_file_named(tmp_path):
     back = read_tum(out)
     assert back.t_ns.tolist() == [1_000_000_000, 1_050_000_000, 1_100_000_000]
     assert np.allclose(back.p_w[:, 0], [0, 1, 2])
-    with pytest.raises(DataError, match="nope.txt"):
+    with pytest.raises(DataError, match="nope.txt: file not found"):
         read_tum(str(tmp_path / "nope.txt"))
+    with pytest.raises(DataError, match="is a folder, not a file"):
+        read_tum(tmp_path)

@@ -29,6 +29,8 @@ class NumericTable:
 def read_text_lines(path: str | Path) -> list[str]:
     """All lines of a text file, or a ``DataError`` if it is missing or unreadable."""
     path = Path(path)
+    if path.is_dir():
+        raise DataError(path, "is a folder, not a file")
     if not path.is_file():
         raise DataError(path, "file not found")
     try:
