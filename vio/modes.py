@@ -118,6 +118,17 @@ MODE_DEFAULTS["mono"]["backend"]["imu"] = {"scale_walk": 8.0}
 # 9.8 (2.0) mm; real MH_01 mono, 7 stretches, 6.30 / 6.20 / 6.24 mm. Stereo keeps 1.0: each
 # keyframe's cam1 match is a fresh measurement (real MH_01 stereo 5.59 -> 5.82 mm at 1.5)
 MODE_DEFAULTS["mono"]["backend"]["vision"]["pixel_sigma"] = 1.5
+# mono: a keyframe at 30 px of mean parallax instead of 20 (still at most every 0.25 s, at
+# least 0.12 s apart): the same 2.5-s window with fewer, wider-baseline keyframes (real MH_05
+# 74 -> 63). Mean ATE 20 / 30 / 40 px: real MH_05 mono 17 starts (0, 10, ..., 160) 59.3 /
+# 60.9 / 64.7 mm, 16 more (5, 15, ..., 155) 70.2 / 68.7 mm (all 33: 64.6 / 64.7 mm), its
+# copies with the stamps moved -20 / +12 / +25 ms (17 starts each) 74.8 / 78.8 / 74.1 ->
+# 63.7 / 75.0 / 75.7 mm; real MH_01 mono 7 stretches 6.03 / 6.02 / 6.12 mm (from frame 0
+# 7.3 -> 6.9 mm); render sim13 6 stretches 8.80 / 8.14 / 8.63 mm. Real MH_05 from frame 0
+# alone 48.9 -> 59.8 mm (its scale +0.40 -> +0.94 %: one start of the 33). Cost: main-process
+# CPU 4.82 -> 4.07 s, whole process 2.63 -> 3.13x real time, wall p95 49.0 -> 45.4 ms
+# (medians of 5 alternated runs, benchmarks/README.md stop 49)
+MODE_DEFAULTS["mono"]["backend"]["keyframe"]["min_parallax_px"] = 30.0
 
 
 def merged(base: dict, over: dict) -> dict:
