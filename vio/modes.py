@@ -125,7 +125,9 @@ MODE_DEFAULTS["mono"]["backend"]["vision"]["pixel_sigma"] = 1.5
 # copies with the stamps moved -20 / +12 / +25 ms (17 starts each) 74.8 / 78.8 / 74.1 ->
 # 63.7 / 75.0 / 75.7 mm; real MH_01 mono 7 stretches 6.03 / 6.02 / 6.12 mm (from frame 0
 # 7.3 -> 6.9 mm); render sim13 6 stretches 8.80 / 8.14 / 8.63 mm. Real MH_05 from frame 0
-# alone 48.9 -> 59.8 mm (its scale +0.40 -> +0.94 %: one start of the 33). Cost: main-process
+# alone 48.9 -> 59.8 mm (its scale +0.40 -> +0.94 %: one start of the 33); unseen renders
+# (seeds 61-63, 18 stretches) 15.7 / 17.0 mm, 25 px 15.4 mm but real MH_05 71.3 mm: these means
+# move by ~10 % with any change of the keyframe schedule. Speed: main-process
 # CPU 4.82 -> 4.07 s, whole process 2.63 -> 3.13x real time, wall p95 49.0 -> 45.4 ms
 # (medians of 5 alternated runs, benchmarks/README.md stop 49)
 MODE_DEFAULTS["mono"]["backend"]["keyframe"]["min_parallax_px"] = 30.0
