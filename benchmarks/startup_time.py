@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # run from a checkout without install
+from vio.threads import one_blas_thread  # noqa: E402
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "euroc_MH_05_mono_15s"
 
 _CHILD = r"""
@@ -40,7 +42,7 @@ print(t_data, time.time())
 
 def one_run(tree: Path, data: Path) -> tuple[float, float, float]:
     """(imports and data, kernels, exit) seconds from the spawn, ``tree``'s code."""
-    env = dict(os.environ, PYTHONPATH=str(tree))
+    env = one_blas_thread(dict(os.environ, PYTHONPATH=str(tree)))   # as `vio run` and run_all's jobs
     t0 = time.time()
     out = subprocess.run([sys.executable, "-c", _CHILD, str(data)], env=env, cwd=tree.parent,
                          capture_output=True, text=True, check=True)
