@@ -118,3 +118,148 @@ def test_worker_process_drops_unreadable_images_and_reports_bad_ones(sim_stereo,
     assert all(len(p.features.ids) and not p.dropped for p in got[:3] + got[4:])
     kept = set(got[2].features.ids.tolist())      # frame 4 tracked on from frame 2
     assert len(kept & set(got[4].features.ids.tolist())) > 0.5 * len(kept)
+
+
+def _policy_flags(frames, cfg, fx):
+    """``KeyframeConfig``'s decisions over (t_ns, FeatureFrame) pairs, as the pipeline
+    makes them (every decision made on its own features)."""
+    from vio.keyframes import KeyframePolicy
+    pol, out = KeyframePolicy(cfg, fx), []
+    for t, fr in frames:
+        kf = pol.due(t, fr.ids, fr.uv)
+        if kf:
+            pol.reset(t, fr.ids, fr.uv)
+        out.append(kf)
+    return out
+
+
+def test_keyframe_policy():
+    """``vio.keyframes.KeyframePolicy``: the first frame, the parallax, the track count,
+    and the interval limits of ``KeyframeConfig``."""
+    from vio.backend.config import KeyframeConfig
+    from vio.keyframes import KeyframePolicy
+    ids = np.arange(20)
+    uv = np.zeros((20, 2))
+    pol = KeyframePolicy(KeyframeConfig(min_parallax_px=10.0, max_interval_s=0.3, min_interval_s=0.1,
+                                        min_tracked=12), fx=100.0)
+    assert pol.due(0, ids, uv)                            # nothing to compare with
+    pol.reset(0, ids, uv)
+    ms = 1_000_000
+    x = np.array([1.0, 0.0])
+    assert not pol.due(50 * ms, ids, uv + 0.5 * x)        # 50 px, but sooner than 0.1 s
+    assert not pol.due(150 * ms, ids, uv + 0.09 * x)      # 9 px
+    assert pol.due(150 * ms, ids, uv + 0.1 * x)           # 10 px
+    assert pol.due(150 * ms, ids[:11], uv[:11])           # 11 tracks left
+    assert not pol.due(150 * ms, ids + 5, uv + 0.09 * x)  # 15 common tracks, 9 px
+    assert pol.due(300 * ms, ids, uv)                     # 0.3 s
+    pol.reset(300 * ms, ids, uv + x)
+    assert not pol.due(350 * ms, ids, uv)                 # 100 px, 0.05 s after the new one
+
+
+def test_stage_matches_cam1_at_its_keyframes_only(sim_stereo):
+    """``FrontendConfig.stereo_at = "keyframe"``: the image stage marks exactly the
+    keyframes the pipeline's policy picks on the same tracks, has cam1 matches at those
+    and through ``every_frame_s`` only, and at the keyframes matches about as many
+    features as matching every frame does; in a worker process it gives the same packets."""
+    import dataclasses
+    from vio.io.euroc import image_files
+    from vio.overlap import overlapped
+    from vio.sync import packets
+    from vio.tracking import ImageStage
+    d, cfg = sim_stereo, PipelineConfig()
+    stamps = d.cam0.t_ns[:60]
+    files = image_files(d, True, stamps)
+    every = ImageStage(d.cam0.calib, d.cam1.calib, cfg.frontend)
+    ref = [every(p) for p in packets(d.imu, stamps, 0.0, image_files=files)]
+    args = (d.cam0.calib, d.cam1.calib, dataclasses.replace(cfg.frontend, stereo_at="keyframe"),
+            cfg.backend.keyframe, 0.5)
+    stage = ImageStage(*args)
+    got = [stage(p) for p in packets(d.imu, stamps, 0.0, image_files=files)]
+    flags = [p.keyframe for p in got]
+    assert flags == _policy_flags([(p.t_ns, p.features) for p in ref], cfg.backend.keyframe,
+                                  d.cam0.calib.intrinsics[0])
+    assert 8 < sum(flags) < 40
+    n_kf = n_ref = 0
+    for p, r in zip(got, ref):
+        np.testing.assert_array_equal(p.features.uv, r.features.uv)     # cam0 is untouched
+        matched = np.isfinite(p.features.right_uv).all(axis=1)
+        if p.keyframe or p.t_ns - stamps[0] < 0.5e9:
+            assert matched.sum() > 20
+        else:
+            assert not matched.any() and not p.features.right_velocity.any()
+        if p.keyframe:
+            n_kf += matched.sum()
+            n_ref += np.isfinite(r.features.right_uv).all(axis=1).sum()
+    assert n_kf >= 0.95 * n_ref
+    remote = list(overlapped(ImageStage, args, packets(d.imu, stamps, 0.0, image_files=files), depth=3))
+    for a, b in zip(remote, got):
+        assert a.keyframe == b.keyframe
+        np.testing.assert_array_equal(a.features.right_uv, b.features.right_uv)
+
+
+def test_stage_decodes_cam1_at_its_keyframes_only(sim_stereo, tmp_path):
+    """With cam1 matched at keyframes, an undecodable cam1 image is not read at a frame
+    that is no keyframe, and drops the frame where it is one (as a bad cam0 image does);
+    a missing cam1 file drops its frame wherever it is."""
+    import dataclasses
+    from vio.io.euroc import image_files
+    from vio.sync import packets
+    from vio.tracking import ImageStage
+    d, cfg = sim_stereo, PipelineConfig()
+    stamps = d.cam0.t_ns[:40]
+    files = image_files(d, True, stamps)
+    args = (d.cam0.calib, d.cam1.calib, dataclasses.replace(cfg.frontend, stereo_at="keyframe"),
+            cfg.backend.keyframe, 0.0)
+    flags = [p.keyframe for p in map(ImageStage(*args), packets(d.imu, stamps, 0.0, image_files=files))]
+    plain, kf = flags.index(False, 1), flags.index(True, flags.index(False, 1))
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    files[plain] = (files[plain][0], bad)
+    files[kf] = (files[kf][0], bad)
+    files[-1] = (files[-1][0], tmp_path / "missing.png")
+    got = list(map(ImageStage(*args), packets(d.imu, stamps, 0.0, image_files=files)))
+    assert not got[plain].dropped and got[plain].features is not None
+    assert "bad.png: image missing or unreadable" in got[kf].dropped and got[kf].features is None
+    assert "missing.png" in got[-1].dropped
+    assert sum(bool(p.dropped) for p in got) == 2
+
+
+@pytest.mark.slow
+def test_stereo_mode_keyframes_are_the_stages(sim_stereo):
+    """Stereo mode (cam1 at keyframes, ``vio.modes``) keyframes where the stage matched
+    cam1: every keyframe after initialization has stereo observations, and the estimate
+    matches the every-frame run's to a few millimetres."""
+    import dataclasses
+    from vio.run import default_config
+    cfg = default_config("stereo")
+    assert cfg.frontend.stereo_at == "keyframe"
+    res = run_dataset(sim_stereo, cfg, mode="stereo")
+    ref = run_dataset(sim_stereo, dataclasses.replace(
+        cfg, frontend=dataclasses.replace(cfg.frontend, stereo_at="frame")), mode="stereo")
+    assert [o.keyframe for o in res.outputs] == [o.keyframe for o in ref.outputs]
+    kfs = [o for o in res.outputs if o.keyframe]
+    assert all(o.packet.keyframe and np.isfinite(o.features.right_uv).any() for o in kfs[1:])
+    ate = [evaluate(*r.arrays(), sim_stereo.groundtruth).ate_rmse for r in (res, ref)]
+    assert ate[0] < 0.03 and abs(ate[0] - ate[1]) < 0.005
+
+
+def test_stereo_initialization_starts_at_a_matched_frame(sim_stereo):
+    """A stereo initialization window whose first frames the stage did not match in cam1
+    (``stereo_at = "keyframe"`` after ``every_frame_s``) starts at the first keyframe: the
+    first pose is that frame's, not an unmatched one's (which cannot give the structure)."""
+    import dataclasses
+    from vio.io.euroc import image_files
+    from vio.pipeline import Pipeline
+    from vio.run import default_config
+    from vio.sync import packets
+    from vio.tracking import ImageStage
+    d, cfg = sim_stereo, default_config("stereo")
+    stamps = d.cam0.t_ns[:30]
+    stage = ImageStage(d.cam0.calib, d.cam1.calib, cfg.frontend, cfg.backend.keyframe, 0.0)
+    got = [stage(p) for p in packets(d.imu, stamps, 0.0, image_files=image_files(d, True, stamps))]
+    first_kf = next(k for k in range(1, len(got)) if got[k].keyframe)
+    assert first_kf > 1 and not np.isfinite(got[1].features.right_uv).any()
+    pipe = Pipeline(d.imu_calib, d.cam0.calib, cfg, d.cam1.calib)
+    outs = [o for p in got[1:] for o in pipe.process(p)]
+    assert pipe.init_info is not None and pipe.init_info.method == "stereo"
+    assert outs[0].t_ns == got[first_kf].t_ns

@@ -92,6 +92,16 @@ MODE_DEFAULTS["mono"]["frontend"] = {"max_features": 200, "min_dist_px": 25}
 # 42.7 ms, ATE 10.0 / 14.5 / 9.2 -> 10.0 / 14.5 / 9.3 mm
 MODE_DEFAULTS["mono"]["backend"]["solver"] = {"outlier_update": "next_frame"}
 MODE_DEFAULTS["stereo"]["backend"]["solver"] = {"outlier_update": "next_frame"}
+# stereo: cam1 decoded and matched at the keyframes only (and through the stereo
+# initialization's window), where the backend uses it; the image stage decides the keyframes
+# (vio.keyframes, FramePacket.keyframe; the same 95 on real MH_01). Real MH_01 stereo, medians
+# of 5 alternated runs: whole process 3.03 -> 3.57x real time, worker CPU 5.65 -> 4.40 s, wall
+# p95 43.6 -> 36.2 ms; at the keyframes 1 % fewer cam1 matches (a new track gets one attempt
+# per keyframe instead of one per frame). Mean ATE: real MH_01 12 starts (15, 30, ..., 180)
+# 5.59 -> 5.58 mm (13 with frame 0: 5.62 -> 5.67 mm), renders seeds 11 / 12 / 14 (6 starts
+# each) 11.09 / 7.24 / 5.25 -> 11.09 / 7.20 / 5.24 mm; but real MH_01 from frame 0 5.9 -> 6.5
+# mm (mean of 6 runs, each with a negligible change of an LK setting: 5.5-6.2 -> 5.9-6.8 mm)
+MODE_DEFAULTS["stereo"]["frontend"] = {"stereo_at": "keyframe"}
 # direct: by default no factor of the photometric points involves td (unobservable there),
 # so it is held at the sync layer's value (``--td``) instead of being reported as estimated
 # (``direct.points.exposure_td`` with ``examples/photometric_td.yaml`` estimates it);

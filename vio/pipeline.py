@@ -26,6 +26,7 @@ from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
+from vio.keyframes import KeyframePolicy, flow_px
 from vio.memory import trim_heap, tune_heap
 from vio.reinit import Reinit
 from vio.sync import FramePacket, carry_imu
@@ -97,6 +98,12 @@ class InitInfo:
     state_s: float
 
 
+def _matched(pkt: FramePacket) -> bool:
+    """Whether the packet has any cam1 match."""
+    fr = pkt.features
+    return fr is not None and fr.right_uv is not None and bool(np.isfinite(fr.right_uv).any())
+
+
 class Pipeline:
     """VIO on feature packets: feed ``FramePacket``s with ``features`` in time order to
     ``process`` (image packets go through ``vio.tracking.ImageStage`` first). With
@@ -116,8 +123,7 @@ class Pipeline:
         self._init_buf: list[FramePacket] = []
         self.sinks: list[Callable[[FrameOutput], None]] = []
         self._recent: deque[FramePacket] = deque()
-        self._kf_features: FeatureFrame | None = None
-        self._kf_t: int = 0
+        self.keyframes = KeyframePolicy(cfg.backend.keyframe, cam.intrinsics[0])
         self._trim_t: int | None = None
         self.n_keyframes = 0
         self._t_first: int | None = None
@@ -138,17 +144,6 @@ class Pipeline:
             return imu, 0.0
         return imu, (imu.t_ns[-1] - imu.t_ns[0]) * 1e-9
 
-    def _flow_px(self, a: FeatureFrame | None, b: FeatureFrame | None,
-                 median: bool = False) -> tuple[float, int]:
-        """Mean (or median) displacement (px) of features common to two frames, and their count."""
-        if a is None or b is None:
-            return 0.0, 0
-        common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
-        if common.size == 0:
-            return 0.0, 0
-        d = np.linalg.norm(a.uv[ia] - b.uv[ib], axis=1) * self.cam.intrinsics[0]
-        return float(np.median(d) if median else d.mean()), int(common.size)
-
     def _still(self) -> bool:
         ic = self.cfg.backend.init
         if any(p.imu_gaps for p in self._recent):   # interpolated across a gap: looks still
@@ -158,8 +153,10 @@ class Pipeline:
             return False
         if not imu_stillness(imu, ic).still:
             return False
-        first, last = self._recent[0].features, self._recent[-1].features
-        flow, n = self._flow_px(first, last, median=True)
+        a, b = self._recent[0].features, self._recent[-1].features
+        if a is None or b is None:
+            return True
+        flow, n = flow_px(a.ids, a.uv, b.ids, b.uv, self.keyframes.fx, median=True)
         return n == 0 or flow < ic.max_still_flow_px
 
     # ------------------------------------------------------------ main loop
@@ -197,7 +194,7 @@ class Pipeline:
         resumed = any(end <= pkt.t_ns for _, end in pkt.imu_gaps)
         if resumed or self._is_keyframe(pkt):
             self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
-            self._kf_features, self._kf_t = pkt.features, pkt.t_ns
+            self._keyframe_taken(pkt)
             self.n_keyframes += 1
             return self._emit(pkt, True, still, t0)
         out = self._emit(pkt, False, still, t0)
@@ -285,6 +282,12 @@ class Pipeline:
         the outputs of the replayed window, [] while waiting, None when the window has
         grown past ``max_window_s`` without success (then the other initializations try)."""
         sc = self.cfg.backend.init.stereo
+        # a first frame the image stage did not match in cam1 (FrontendConfig.stereo_at: a
+        # window that starts after its first seconds) cannot give the structure: the window
+        # starts at the next keyframe
+        buf = self._init_buf
+        while len(buf) > 1 and buf[0].keyframe is False and not _matched(buf[0]):
+            buf.pop(0)
         buf = self._init_buf
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
         if span < sc.window_s - 1e-6:
@@ -346,7 +349,11 @@ class Pipeline:
         self.est.lm.observe(0, self._features(pkt))
         for src in self.est.sources:
             src.observe(0, pkt)
-        self._kf_features, self._kf_t = pkt.features, pkt.t_ns
+        self._keyframe_taken(pkt)
+
+    def _keyframe_taken(self, pkt: FramePacket) -> None:
+        fr = pkt.features
+        self.keyframes.reset(pkt.t_ns, None if fr is None else fr.ids, None if fr is None else fr.uv)
 
     def adopt(self, est: Estimator, buf: list[FramePacket]) -> None:
         """Let ``est``, initialized at ``buf[0]``, take over: ``buf[1:]`` is replayed
@@ -363,14 +370,12 @@ class Pipeline:
         self.n_keyframes = n
 
     def _is_keyframe(self, pkt: FramePacket) -> bool:
-        kc = self.cfg.backend.keyframe
-        dt = (pkt.t_ns - self._kf_t) * 1e-9
-        if dt < kc.min_interval_s:
-            return False
-        if dt >= kc.max_interval_s:
-            return True
-        flow, n = self._flow_px(self._kf_features, pkt.features)
-        return flow >= kc.min_parallax_px or n < kc.min_tracked
+        """The image stage's decision where it made one (``FramePacket.keyframe``: it
+        matched cam1 there), else ``KeyframeConfig``'s policy."""
+        if pkt.keyframe is not None:
+            return pkt.keyframe
+        fr = pkt.features
+        return self.keyframes.due(pkt.t_ns, None if fr is None else fr.ids, None if fr is None else fr.uv)
 
     def _emit(self, pkt: FramePacket, is_kf: bool, still: bool, t0: float) -> FrameOutput:
         if is_kf:

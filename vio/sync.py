@@ -70,7 +70,9 @@ class FramePacket:
     overlaps (``imu`` is not to be preintegrated then); ``imu_dropped``: impossible
     samples dropped in that interval (``vio.faults``). ``dropped``: why the frame's
     vision could not be used (an image that does not decode); its IMU then carries over
-    to the next frame (:func:`carry_imu`).
+    to the next frame (:func:`carry_imu`). ``keyframe``: the image stage's keyframe
+    decision where it made one (stereo matched at keyframes only,
+    ``FrontendConfig.stereo_at``), else None (the pipeline decides).
     """
 
     index: int
@@ -84,6 +86,7 @@ class FramePacket:
     imu_gaps: tuple[tuple[int, int], ...] = ()
     imu_dropped: int = 0
     dropped: str = ""
+    keyframe: bool | None = None
 
     @property
     def dt_s(self) -> float:

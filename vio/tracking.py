@@ -2,13 +2,17 @@
 
 Wraps the KLT front end (``vio.frontend``): loads the images lazily, predicts the
 LK search from the gyro rotation since the previous frame, and attaches cam0
-features with their cam1 matches (``FeatureFrame.right_uv``) for the backend.
+features with their cam1 matches (``FeatureFrame.right_uv``) for the backend. With
+``FrontendConfig.stereo_at = "keyframe"`` and a keyframe policy it decides the keyframes
+itself (``FramePacket.keyframe``) and decodes and matches cam1 at those frames only.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
@@ -20,7 +24,11 @@ from vio.errors import DataError
 from vio.imu import concat
 from vio.io.euroc import read_image
 from vio.io.types import CameraCalib, ImuData
+from vio.keyframes import KeyframePolicy
 from vio.sync import FramePacket
+
+if TYPE_CHECKING:
+    from vio.backend.config import KeyframeConfig
 
 
 def gyro_rotation(imu: ImuData) -> np.ndarray:
@@ -35,28 +43,46 @@ def gyro_rotation(imu: ImuData) -> np.ndarray:
 
 
 class ImageStage:
-    """Adds ``FeatureFrame`` observations to image packets (mono or stereo)."""
+    """Adds ``FeatureFrame`` observations to image packets (mono or stereo).
+
+    ``keyframes``: the pipeline's keyframe policy. With it and
+    ``FrontendConfig.stereo_at = "keyframe"`` (stereo) the stage applies the policy to
+    its own features and marks every packet's ``keyframe``; cam1 is decoded and matched
+    at keyframes, and at every frame of the first ``every_frame_s`` seconds (the stereo
+    initialization's window, which aligns every frame). Real MH_01 stereo: 95 keyframes
+    in 320 frames."""
 
     def __init__(self, cam0: CameraCalib, cam1: CameraCalib | None,
-                 cfg: FrontendConfig | None = None) -> None:
+                 cfg: FrontendConfig | None = None, keyframes: KeyframeConfig | None = None,
+                 every_frame_s: float = 0.0) -> None:
         self.cam0 = cam0
         self.stereo = cam1 is not None
         self._calibs = (cam0,) if cam1 is None else (cam0, cam1)
         self.frontend = Frontend(cam0, cam1, cfg)
         self._T_b_c = cam0.T_b_c.matrix()
         self._first = True
-        self._skipped: list[ImuData] = []   # IMU of dropped frames since the last tracked one
+        self._skipped: list[FramePacket] = []   # dropped frames since the last tracked one
         self._pool: ThreadPoolExecutor | None = None
+        at_keyframes = self.stereo and self.frontend.cfg.stereo_at == "keyframe" and keyframes is not None
+        self._policy = KeyframePolicy(keyframes, cam0.intrinsics[0]) if at_keyframes else None
+        self._every_frame_ns = int(every_frame_s * 1e9)
+        self._t_first: int | None = None
 
     def load(self, pkt: FramePacket) -> FramePacket:
         """``pkt`` with its images decoded (``vio.overlap``'s worker runs this a packet
         ahead, in a thread, while the previous packet is tracked); an image that does not
-        decode marks the frame ``dropped`` (``Pipeline.process`` carries its IMU over)."""
+        decode marks the frame ``dropped`` (``Pipeline.process`` carries its IMU over).
+        With a keyframe policy cam1 is only checked to exist here: ``_finish`` decodes it
+        where it is matched (a cam1 file that exists but does not decode drops the frame
+        there)."""
         if pkt.images or not pkt.image_files or pkt.dropped:
             return pkt
         files = pkt.image_files[:2 if self.stereo else 1]
+        lazy = self._policy is not None and len(files) > 1
         try:
-            images = tuple(read_image(p) for p in files)
+            images = tuple(read_image(p) for p in (files[:1] if lazy else files))
+            if lazy and not (hasattr(files[1], "read_gray") or Path(files[1]).is_file()):
+                raise DataError(files[1], "image missing or unreadable")
         except DataError as exc:
             return dataclasses.replace(pkt, dropped=str(exc))
         for path, img, calib in zip(files, images, self._calibs):
@@ -82,21 +108,45 @@ class ImageStage:
     def _track(self, pkt: FramePacket) -> tuple:
         pkt = self.load(pkt)
         if pkt.dropped:   # the next frame tracks from the last one tracked, rotation included
-            self._skipped.append(pkt.imu)
+            self._skipped.append(pkt)
             return pkt, None, None
         imgs = pkt.images
         if not imgs:
             raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
-        imu = concat([*self._skipped, pkt.imu]) if self._skipped else pkt.imu
-        self._skipped = []
+        skipped, self._skipped = self._skipped, []
+        imu = concat([*(p.imu for p in skipped), pkt.imu]) if skipped else pkt.imu
         R = None if self._first else camera_rotation(gyro_rotation(imu), self._T_b_c)
         self._first = False
-        img1 = imgs[1] if self.stereo and len(imgs) > 1 else None
-        return pkt, self.frontend.track(pkt.t_ns, imgs[0], R), img1
+        mono = self.frontend.track(pkt.t_ns, imgs[0], R)
+        if not self.stereo:
+            return pkt, mono, None
+        if self._policy is None:
+            return pkt, mono, imgs[1] if len(imgs) > 1 else None
+        pkt = dataclasses.replace(pkt, keyframe=self._decide(pkt, mono, skipped))
+        if self._t_first is None:
+            self._t_first = pkt.t_ns
+        if pkt.keyframe or pkt.t_ns - self._t_first < self._every_frame_ns:
+            return pkt, mono, imgs[1] if len(imgs) > 1 else pkt.image_files[1]
+        return pkt, mono, None
 
-    def _finish(self, pkt: FramePacket, mono, img1: np.ndarray | None) -> FramePacket:
+    def _decide(self, pkt: FramePacket, mono, skipped: list[FramePacket]) -> bool:
+        """The keyframe policy on this frame's tracks (``Pipeline._step``: a frame whose
+        packet ends an IMU gap, its dropped predecessors' included, is one too)."""
+        gaps = [g for p in (*skipped, pkt) for g in p.imu_gaps]
+        kf = any(end <= pkt.t_ns for _, end in gaps) or self._policy.due(pkt.t_ns, mono.ids, mono.uv)
+        if kf:
+            self._policy.reset(pkt.t_ns, mono.ids, mono.uv)
+        return kf
+
+    def _finish(self, pkt: FramePacket, mono, img1) -> FramePacket:
         if mono is None:
             return dataclasses.replace(pkt, features=None, images=())
+        if img1 is not None and not isinstance(img1, np.ndarray):   # decoded here (load: lazy)
+            try:
+                img1 = self._calibs[1].check_resolution(read_image(img1), img1)
+            except DataError as exc:
+                self.frontend.match(mono, None)
+                return dataclasses.replace(pkt, features=None, images=(), dropped=str(exc))
         tf = self.frontend.match(mono, img1)
         fr = tf.to_feature_frame(0)
         if self.stereo:

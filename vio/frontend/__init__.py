@@ -32,7 +32,8 @@ class TrackedFrame:
     observation (rolling shutter); ``track_len`` (M,) frames observed including this
     one; ``right_uv``/``right_px`` (M, 2) cam1 normalized/pixel, NaN where unmatched;
     ``right_velocity`` (M, 2) cam1 normalized velocity in 1/s (0 when the id had no
-    right match in the previous frame); ``depth`` (M,) z in cam0 in metres, NaN where
+    right match in the previous frame; see ``Frontend.match`` after a frame without
+    matches); ``depth`` (M,) z in cam0 in metres, NaN where
     not triangulated.
     """
 
@@ -85,7 +86,8 @@ class Frontend:
         self.stereo = (StereoMatcher(self.cam0, self.cam1, self.cfg)
                        if self.cam1 is not None and self.cfg.stereo else None)
         self._preprocess1 = Preprocess(self.cam1, self.cfg) if self.stereo is not None else None
-        self._prev: TrackedFrame | None = None
+        self._prev: TrackedFrame | None = None      # the previous frame
+        self._matched: TrackedFrame | None = None   # the last frame matched in cam1
 
     def process(self, t_ns: int, img0: np.ndarray, img1: np.ndarray | None = None,
                 R_prev_cur: np.ndarray | None = None) -> TrackedFrame:
@@ -105,25 +107,32 @@ class Frontend:
         """The cam1 half of ``process`` for ``track``'s result. It shares no state with
         ``track`` (its own cam1 preprocessing, the previous frame's matches), so frame k's
         ``match`` may run in another thread while frame k+1 is tracked; calls must come in
-        frame order."""
+        frame order. Without ``img1`` the frame has no cam1 matches (a frame skipped by
+        ``FrontendConfig.stereo_at``): the next match starts its tracks at their depths
+        in the last matched frame."""
         m = len(mono.ids)
         right_uv, right_px, depth = np.full((m, 2), np.nan), np.full((m, 2), np.nan), np.full(m, np.nan)
-        found, idx = self._lookup(mono.ids)
-        if self.stereo is not None and img1 is not None:
+        found, idx = self._lookup(mono.ids, self._prev)
+        stereo = self.stereo is not None and img1 is not None
+        if stereo:
             img1 = self._preprocess1(img1, f"cam {self.cam1.calib.name} image at t={mono.t_ns} ns")
+            last = self._matched
+            mfound, midx = (found, idx) if last is self._prev else self._lookup(mono.ids, last)
             match = self.stereo.match(mono.image, img1, mono.px, mono.uv,
-                                      self._depth_guess(found, idx, mono.px))
+                                      self._depth_guess(last, mfound, midx, mono.px))
             right_uv, right_px, depth = match.right_uv, match.right_px, match.depth
         frame = TrackedFrame(
             t_ns=mono.t_ns, ids=mono.ids, uv=mono.uv, px=mono.px, velocity=mono.velocity,
             row=mono.px[:, 1].copy(), track_len=mono.track_len, right_uv=right_uv, right_px=right_px,
-            right_velocity=self._right_velocity(mono.t_ns, found, idx, right_uv), depth=depth)
+            right_velocity=self._right_velocity(mono, found, idx, right_uv), depth=depth)
         self._prev = frame
+        if stereo:
+            self._matched = frame
         return frame
 
-    def _lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rows of ``ids`` in the previous frame: (found (M,) bool, index (M,))."""
-        prev = self._prev
+    @staticmethod
+    def _lookup(ids: np.ndarray, prev: TrackedFrame | None) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of ``ids`` in frame ``prev``: (found (M,) bool, index (M,))."""
         if prev is None or len(prev.ids) == 0:
             return np.zeros(len(ids), dtype=bool), np.zeros(len(ids), dtype=np.int64)
         order = np.argsort(prev.ids)
@@ -131,22 +140,31 @@ class Frontend:
         idx = order[pos]
         return prev.ids[idx] == ids, idx
 
-    def _depth_guess(self, found: np.ndarray, idx: np.ndarray, px: np.ndarray) -> np.ndarray:
-        """(M,) m: each track's depth in the previous frame (``_lookup``'s rows), else its
+    def _depth_guess(self, last: TrackedFrame | None, found: np.ndarray, idx: np.ndarray,
+                     px: np.ndarray) -> np.ndarray:
+        """(M,) m: each track's depth in frame ``last`` (``_lookup``'s rows there), else its
         neighbours' there."""
         if not found.any():
             return np.full(len(found), np.nan)
-        return neighbour_depths(px, np.where(found, self._prev.depth[idx], np.nan),
+        return neighbour_depths(px, np.where(found, last.depth[idx], np.nan),
                                 self.cfg.stereo_guess_neighbours)
 
-    def _right_velocity(self, t_ns: int, found: np.ndarray, idx: np.ndarray,
+    def _right_velocity(self, mono: MonoTracks, found: np.ndarray, idx: np.ndarray,
                         right_uv: np.ndarray) -> np.ndarray:
         """(M, 2) cam1 velocity (1/s) from the previous frame (``_lookup``'s rows); 0 where
-        the id or either match is missing."""
+        the id or either match is missing. After a frame without cam1 matches
+        (``FrontendConfig.stereo_at``) the cam0 velocity stands in for the matched rows:
+        the two cameras look the same way, and their image velocities differ by the rate
+        of the disparity alone (a point at 1 m approached at 0.3 m/s: 0.03/s of normalized
+        velocity against the td gate's 5/s, ``VisionConfig.td_velocity_gate``)."""
         vel = np.zeros_like(right_uv)
         if not found.any():
             return vel
-        dt = (t_ns - self._prev.t_ns) * 1e-9
+        if self._prev is not self._matched:
+            ok = np.all(np.isfinite(right_uv), axis=1)
+            vel[ok] = mono.velocity[ok]
+            return vel
+        dt = (mono.t_ns - self._prev.t_ns) * 1e-9
         diff = (right_uv - self._prev.right_uv[idx]) / dt
         ok = found & np.all(np.isfinite(diff), axis=1)
         vel[ok] = diff[ok]

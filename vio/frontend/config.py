@@ -72,6 +72,11 @@ class FrontendConfig:
     stereo_epipolar_px: float = 1.5    # max distance to the epipolar line
     min_depth_m: float = 0.1           # closer triangulations reject the match
     max_depth_m: float = 100.0         # farther ones keep the match, depth NaN
+    # where cam1 is decoded and matched: at every frame, or ("keyframe") only at the frames
+    # the image stage's keyframe policy chooses (``vio.keyframes``; the pipeline then takes
+    # those as its keyframes, the backend uses cam1 at keyframes alone) and at every frame
+    # of the stereo initialization's window; stereo mode's default (``vio.modes``)
+    stereo_at: Literal["frame", "keyframe"] = "frame"
     # concurrency (vio.overlap): track in a worker process while the backend solves;
     # the output is identical either way, only the wall time changes
     worker_process: bool = True
@@ -96,5 +101,7 @@ class FrontendConfig:
             raise ValueError(f"FrontendConfig.worker_nice must be in 0..19, got {self.worker_nice}")
         if self.contrast not in ("sqrt", "clahe", "none"):
             raise ValueError(f"FrontendConfig.contrast must be 'sqrt', 'clahe' or 'none', got {self.contrast!r}")
+        if self.stereo_at not in ("frame", "keyframe"):
+            raise ValueError(f"FrontendConfig.stereo_at must be 'frame' or 'keyframe', got {self.stereo_at!r}")
         if self.max_depth_m <= self.min_depth_m:
             raise ValueError("FrontendConfig.max_depth_m must exceed min_depth_m")
