@@ -102,6 +102,11 @@ MODE_DEFAULTS["stereo"]["backend"]["solver"] = {"outlier_update": "next_frame"}
 # each) 11.09 / 7.24 / 5.25 -> 11.09 / 7.20 / 5.24 mm; but real MH_01 from frame 0 5.9 -> 6.5
 # mm (mean of 6 runs, each with a negligible change of an LK setting: 5.5-6.2 -> 5.9-6.8 mm)
 MODE_DEFAULTS["stereo"]["frontend"] = {"stereo_at": "keyframe"}
+# hybrid likewise (its photometric points read the keyframes' pairs themselves): real MH_01
+# from frame 0 4.9 mm either way, 7 stretches 5.00 -> 5.02 mm, renders seeds 11 / 14 (6 starts
+# each) 35.13 / 10.09 -> 35.11 / 10.09 mm; alternated medians of 5, whole process 1.93 ->
+# 1.99x, worker CPU 5.95 -> 4.83 s (the main process, 8.8 s, bounds hybrid)
+MODE_DEFAULTS["hybrid"]["frontend"]["stereo_at"] = "keyframe"
 # direct: by default no factor of the photometric points involves td (unobservable there),
 # so it is held at the sync layer's value (``--td``) instead of being reported as estimated
 # (``direct.points.exposure_td`` with ``examples/photometric_td.yaml`` estimates it);

@@ -162,8 +162,8 @@ def _packet_stream(data: EurocDataset, cfg: PipelineConfig, mode: str, stamps: n
                  **screen, td_source=td_feedback(pipe, cfg) if timed else None)
     from vio.tracking import ImageStage
     args = (data.cam0.calib, data.cam1.calib if stereo else None, cfg.frontend)
-    if mode == "stereo":   # cam1 matched at the keyframes (FrontendConfig.stereo_at) and the
-        # stereo initialization's frames
+    if mode in ("stereo", "hybrid"):   # cam1 matched at the keyframes (FrontendConfig.stereo_at), the
+        # stereo initialization's frames (vio.modes: stereo and hybrid)
         sc = cfg.backend.init.stereo
         args += (cfg.backend.keyframe, sc.max_window_s + 0.1 if sc.enabled else 0.0)
     worker = cfg.frontend.worker_process and overlap.SUPPORTED

@@ -6,9 +6,10 @@ returns the per-packet stage (``DirectStage``) that ``run_dataset`` applies befo
 ``pipe.process``: it supplies the ``FeatureFrame`` the pipeline needs; the source's
 ``observe`` reads a keyframe's stereo pair from the packet's files.
 
-* hybrid: the usual stereo KLT stage (``vio.tracking.ImageStage``) runs on every
-  frame, in the front-end worker process as in stereo mode; its features give the backend's projection/stereo landmark factors, and the
-  photometric point factors are added to the same graph.
+* hybrid: the usual stereo KLT stage (``vio.tracking.ImageStage``) tracks every frame
+  and matches cam1 at its keyframes (``FrontendConfig.stereo_at``), in the front-end
+  worker process as in stereo mode; its features give the backend's projection/stereo
+  landmark factors, and the photometric point factors are added to the same graph.
 * direct: photometric + IMU only. The backend's landmark manager is replaced by
   ``FeaturelessLandmarks``, which ignores every feature observation, so the graph holds
   no projection factor at all. KLT still runs *until the estimator is initialized*:
