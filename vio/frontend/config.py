@@ -75,7 +75,8 @@ class FrontendConfig:
     # where cam1 is decoded and matched: at every frame, or ("keyframe") only at the frames
     # the image stage's keyframe policy chooses (``vio.keyframes``; the pipeline then takes
     # those as its keyframes, the backend uses cam1 at keyframes alone) and at every frame
-    # of the stereo initialization's window; stereo mode's default (``vio.modes``)
+    # of the stereo initialization's window; the default of stereo and hybrid (``vio.modes``),
+    # ignored by direct mode (its KLT runs only until it is initialized)
     stereo_at: Literal["frame", "keyframe"] = "frame"
     # concurrency (vio.overlap): track in a worker process while the backend solves;
     # the output is identical either way, only the wall time changes
