@@ -3,8 +3,8 @@
 A frame becomes a keyframe when the mean feature parallax since the last keyframe reaches
 ``min_parallax_px``, when ``max_interval_s`` has elapsed, or when fewer than
 ``min_tracked`` features remain tracked, never sooner than ``min_interval_s`` after the
-last one. The pipeline applies it to every packet; in stereo mode the image stage applies
-the same policy to its own features (``FrontendConfig.stereo_at = "keyframe"``) and
+last one. The pipeline applies it to every packet; in stereo and hybrid mode the image stage
+applies the same policy to its own features (``FrontendConfig.stereo_at = "keyframe"``) and
 matches cam1 only at the frames it chooses, which the pipeline then takes as its keyframes
 (``FramePacket.keyframe``), so every keyframe has its stereo matches.
 """
