@@ -191,8 +191,7 @@ class Pipeline:
         still = self._still()
         # the IMU resumed in this packet: a keyframe here ends the bridge, the next interval
         # gets an IMU factor again
-        resumed = any(end <= pkt.t_ns for _, end in pkt.imu_gaps)
-        if resumed or self._is_keyframe(pkt):
+        if pkt.imu_resumed or self._is_keyframe(pkt):
             self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
             self._keyframe_taken(pkt)
             self.n_keyframes += 1
@@ -288,7 +287,6 @@ class Pipeline:
         buf = self._init_buf
         while len(buf) > 1 and buf[0].keyframe is False and not _matched(buf[0]):
             buf.pop(0)
-        buf = self._init_buf
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
         if span < sc.window_s - 1e-6:
             self.init_wait = f"{span:.2f} s of stereo frames buffered; the stereo alignment needs {sc.window_s:.2f} s"

@@ -89,6 +89,13 @@ class FramePacket:
     keyframe: bool | None = None
 
     @property
+    def imu_resumed(self) -> bool:
+        """Whether the IMU resumes after a gap within this packet's interval (a gap's first
+        sample after it is no later than ``t_ns``): the pipeline makes such a frame a
+        keyframe, which ends the gap's bridge."""
+        return any(end <= self.t_ns for _, end in self.imu_gaps)
+
+    @property
     def dt_s(self) -> float:
         """Duration covered by ``imu`` in seconds."""
         return float(self.imu.t_ns[-1] - self.imu.t_ns[0]) * 1e-9

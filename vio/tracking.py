@@ -10,6 +10,7 @@ itself (``FramePacket.keyframe``) and decodes and matches cam1 at those frames o
 from __future__ import annotations
 
 import dataclasses
+import functools
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,11 +22,10 @@ from vio.frontend import Frontend
 from vio.frontend.camera import camera_rotation
 from vio.frontend.config import FrontendConfig
 from vio.errors import DataError
-from vio.imu import concat
 from vio.io.euroc import read_image
 from vio.io.types import CameraCalib, ImuData
 from vio.keyframes import KeyframePolicy
-from vio.sync import FramePacket
+from vio.sync import FramePacket, carry_imu
 
 if TYPE_CHECKING:
     from vio.backend.config import KeyframeConfig
@@ -113,27 +113,28 @@ class ImageStage:
         imgs = pkt.images
         if not imgs:
             raise ValueError(f"frame {pkt.stamp_ns}: no image to track")
-        skipped, self._skipped = self._skipped, []
-        imu = concat([*(p.imu for p in skipped), pkt.imu]) if skipped else pkt.imu
-        R = None if self._first else camera_rotation(gyro_rotation(imu), self._T_b_c)
+        # the interval since the last tracked frame, as the pipeline carries it (its IMU
+        # and gaps joined; the packet itself goes on unchanged)
+        since = functools.reduce(carry_imu, [*self._skipped, pkt])
+        self._skipped = []
+        R = None if self._first else camera_rotation(gyro_rotation(since.imu), self._T_b_c)
         self._first = False
         mono = self.frontend.track(pkt.t_ns, imgs[0], R)
         if not self.stereo:
             return pkt, mono, None
         if self._policy is None:
             return pkt, mono, imgs[1] if len(imgs) > 1 else None
-        pkt = dataclasses.replace(pkt, keyframe=self._decide(pkt, mono, skipped))
+        pkt = dataclasses.replace(pkt, keyframe=self._decide(since, mono))
         if self._t_first is None:
             self._t_first = pkt.t_ns
         if pkt.keyframe or pkt.t_ns - self._t_first < self._every_frame_ns:
             return pkt, mono, imgs[1] if len(imgs) > 1 else pkt.image_files[1]
         return pkt, mono, None
 
-    def _decide(self, pkt: FramePacket, mono, skipped: list[FramePacket]) -> bool:
-        """The keyframe policy on this frame's tracks (``Pipeline._step``: a frame whose
-        packet ends an IMU gap, its dropped predecessors' included, is one too)."""
-        gaps = [g for p in (*skipped, pkt) for g in p.imu_gaps]
-        kf = any(end <= pkt.t_ns for _, end in gaps) or self._policy.due(pkt.t_ns, mono.ids, mono.uv)
+    def _decide(self, pkt: FramePacket, mono) -> bool:
+        """The keyframe policy on this frame's tracks; ``pkt`` carries the IMU of its dropped
+        predecessors (``Pipeline._step``: a frame where the IMU resumes is one too)."""
+        kf = pkt.imu_resumed or self._policy.due(pkt.t_ns, mono.ids, mono.uv)
         if kf:
             self._policy.reset(pkt.t_ns, mono.ids, mono.uv)
         return kf
@@ -143,7 +144,7 @@ class ImageStage:
             return dataclasses.replace(pkt, features=None, images=())
         if img1 is not None and not isinstance(img1, np.ndarray):   # decoded here (load: lazy)
             try:
-                img1 = self._calibs[1].check_resolution(read_image(img1), img1)
+                img1 = read_image(img1, self._calibs[1])
             except DataError as exc:
                 self.frontend.match(mono, None)
                 return dataclasses.replace(pkt, features=None, images=(), dropped=str(exc))
