@@ -19,7 +19,8 @@ newest observation, so it is marginalized with its last observer. After each upd
 outlier check (``vio.backend.point_outliers``) drops a point whose errors disagree, or
 only the observation of an isolated gross error, retiring the point. Frames: ``p_w`` world
 (m), observations normalized cam0 coordinates, keyframe poses ``T_w_b``; used in monocular
-modes with the pinhole model and a held extrinsic (the factor holds ``T_b_c``).
+modes with the pinhole model; the extrinsic ``T_b_c`` is a key of every factor when
+calibrated online (``CalibConfig.estimate_extrinsic``), else a constant of it.
 """
 
 from __future__ import annotations
@@ -82,10 +83,9 @@ class PointTracks:
         self._table = table
 
     def usable(self) -> bool:
-        """Whether tracks become world points (mono, pinhole, extrinsic held)."""
+        """Whether tracks become world points (mono, pinhole)."""
         cfg = self.est.cfg
-        return (cfg.vision.reanchor == "point" and self.est.T_c0_c1 is None
-                and cfg.vision.model == "pinhole" and not cfg.calib.estimate_extrinsic)
+        return cfg.vision.reanchor == "point" and self.est.T_c0_c1 is None and cfg.vision.model == "pinhole"
 
     def reset(self) -> None:
         self.tracks = {}
@@ -181,7 +181,9 @@ class PointTracks:
             points_velocities(start, idx, R, t, w, v, p_w, meas, float(vc.min_depth_m), float(vc.td_velocity_gate),
                               float(vc.td_velocity_max), vel)
         kernel = (_KERNELS[vc.kernel], float(vc.kernel_k))
-        T_b_c, td_key = est.values.atPose3(graph.EXTRINSIC), graph.TD if vc.use_td else None
+        # the extrinsic: a key of every factor when calibrated online, else the held value
+        T_b_c = graph.EXTRINSIC if est.cfg.calib.estimate_extrinsic else est.values.atPose3(graph.EXTRINSIC)
+        td_key = graph.TD if vc.use_td else None
         return [world_point_factor(pt.key, [graph.X(f) for f in fr], td_key, T_b_c, uv[a:b], vel[a:b], off[a:b],
                                    est.sigma, kernel)
                 for (pt, fr, _, _), a, b in zip(jobs, start[:-1], start[1:])]
