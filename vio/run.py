@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
+import gtsam
 import numpy as np
 
 from vio.config import from_dict, read_yaml
@@ -356,7 +357,11 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
                   f"accel bias      {np.round(last.bias.accelerometer(), 4)} m/s^2",
                   f"td              {last.td_s * 1e3:.2f} ms"]
         t = last.T_b_c.translation()
-        lines.append(f"extrinsic t_b_c {np.round(t, 4)} m")
+        d = data.cam0.calib.T_b_c.between(last.T_b_c)
+        moved = np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))), np.linalg.norm(d.translation()) * 1e3
+        lines.append(f"extrinsic t_b_c {np.round(t, 4)} m"
+                     + (f" (moved {moved[0]:.3f} deg / {moved[1]:.1f} mm from the calibration)"
+                        if max(moved) > 1e-3 else ""))
     if data.groundtruth is not None and len(res.outputs) > 3:
         from vio.evaluation import evaluate, overlap_problem
         problem = overlap_problem(res.arrays()[0], data.groundtruth)
