@@ -149,7 +149,8 @@ def test_world_points_calibrate_a_wrong_extrinsic_online(mh04_12s):
     from vio.pipeline import Pipeline
     d = mh04_12s
     true = d.cam0.calib.T_b_c
-    wrong = true.compose(gtsam.Pose3(gtsam.Rot3.Rodrigues(np.radians([0.6, -0.5, 0.6])), np.array([0.006, -0.005, 0.006])))
+    off = gtsam.Pose3(gtsam.Rot3.Rodrigues(np.radians([0.6, -0.5, 0.6])), np.array([0.006, -0.005, 0.006]))
+    wrong = true.compose(off)
     bad = dataclasses.replace(d, cam0=dataclasses.replace(d.cam0, calib=dataclasses.replace(d.cam0.calib, T_b_c=wrong)))
     cfg = _cfg("point")
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
