@@ -98,6 +98,12 @@ class InitInfo:
     state_s: float
 
 
+def _tracks(fr: FeatureFrame | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A frame's track ids (M,) and normalized ``uv`` (M, 2), as ``vio.keyframes`` takes
+    them (None, None without features)."""
+    return (None, None) if fr is None else (fr.ids, fr.uv)
+
+
 def _matched(pkt: FramePacket) -> bool:
     """Whether the packet has any cam1 match."""
     fr = pkt.features
@@ -153,10 +159,8 @@ class Pipeline:
             return False
         if not imu_stillness(imu, ic).still:
             return False
-        a, b = self._recent[0].features, self._recent[-1].features
-        if a is None or b is None:
-            return True
-        flow, n = flow_px(a.ids, a.uv, b.ids, b.uv, self.keyframes.fx, median=True)
+        flow, n = flow_px(*_tracks(self._recent[0].features), *_tracks(self._recent[-1].features),
+                          self.keyframes.fx, median=True)
         return n == 0 or flow < ic.max_still_flow_px
 
     # ------------------------------------------------------------ main loop
@@ -350,8 +354,7 @@ class Pipeline:
         self._keyframe_taken(pkt)
 
     def _keyframe_taken(self, pkt: FramePacket) -> None:
-        fr = pkt.features
-        self.keyframes.reset(pkt.t_ns, None if fr is None else fr.ids, None if fr is None else fr.uv)
+        self.keyframes.reset(pkt.t_ns, *_tracks(pkt.features))
 
     def adopt(self, est: Estimator, buf: list[FramePacket]) -> None:
         """Let ``est``, initialized at ``buf[0]``, take over: ``buf[1:]`` is replayed
@@ -372,8 +375,7 @@ class Pipeline:
         matched cam1 there), else ``KeyframeConfig``'s policy."""
         if pkt.keyframe is not None:
             return pkt.keyframe
-        fr = pkt.features
-        return self.keyframes.due(pkt.t_ns, None if fr is None else fr.ids, None if fr is None else fr.uv)
+        return self.keyframes.due(pkt.t_ns, *_tracks(pkt.features))
 
     def _emit(self, pkt: FramePacket, is_kf: bool, still: bool, t0: float) -> FrameOutput:
         if is_kf:

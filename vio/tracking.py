@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 from concurrent.futures import Future, ThreadPoolExecutor
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import gtsam
@@ -22,7 +21,7 @@ from vio.frontend import Frontend
 from vio.frontend.camera import camera_rotation
 from vio.frontend.config import FrontendConfig
 from vio.errors import DataError
-from vio.io.euroc import read_image
+from vio.io.euroc import image_exists, read_image
 from vio.io.types import CameraCalib, ImuData
 from vio.keyframes import KeyframePolicy
 from vio.sync import FramePacket, carry_imu
@@ -81,7 +80,7 @@ class ImageStage:
         lazy = self._policy is not None and len(files) > 1
         try:
             images = tuple(read_image(p) for p in (files[:1] if lazy else files))
-            if lazy and not (hasattr(files[1], "read_gray") or Path(files[1]).is_file()):
+            if lazy and not image_exists(files[1]):
                 raise DataError(files[1], "image missing or unreadable")
         except DataError as exc:
             return dataclasses.replace(pkt, dropped=str(exc))

@@ -277,6 +277,12 @@ def _normalized_quats(q: np.ndarray, table) -> np.ndarray:
     return q / n[:, None]
 
 
+def image_exists(path: str | Path) -> bool:
+    """Whether :func:`read_image` finds something to read at ``path`` (a file, or a
+    reference with ``read_gray()``), without decoding it."""
+    return hasattr(path, "read_gray") or Path(path).is_file()
+
+
 def read_image(path: str | Path, calib: CameraCalib | None = None) -> np.ndarray:
     """Grayscale uint8 image (H, W); ``DataError`` if missing or unreadable, or (with
     ``calib``) not of the camera's calibrated resolution. Accepts any reference with a
