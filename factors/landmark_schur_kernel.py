@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.track_kernel import track_eval, whitening_2
+from factors.track_kernel import track_eval, track_eval_g, track_eval_lam, whitening_2
 
 
 
@@ -42,18 +42,34 @@ def _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, 
 
 
 @_njit
-def _depth_terms(r, J, U, dw):
-    """(j^T j, j^T r) of the whitened system (W^2 = I + U diag(dw) U^T), and U^T r, U^T j."""
+def _eval_lam(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
+              right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam):
+    """``_eval_one``'s r (2n,) and J[:, 0] (2n,) alone (``track_eval_lam``): a depth step's
+    inputs without the landmark's pose columns."""
+    s0, s1 = start[i], start[i + 1]
+    lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
+    r = np.empty(2 * (s1 - s0))
+    jl = np.empty(2 * (s1 - s0))
+    track_eval_lam(lb, target[s0:s1], right[s0:s1], C, Tc, lam, td, use_td, a_uv[i], a_vel[i],
+                   a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, sigma, kind,
+                   kk, r, jl)
+    return r, jl
+
+
+@_njit
+def _depth_terms(r, jl, U, dw):
+    """(j^T j, j^T r) of the whitened system (W^2 = I + U diag(dw) U^T) for the depth
+    column ``jl`` (2n,)."""
     m = r.shape[0]
     hll, gl = 0.0, 0.0
     for a in range(m):
-        hll += J[a, 0] * J[a, 0]
-        gl += J[a, 0] * r[a]
+        hll += jl[a] * jl[a]
+        gl += jl[a] * r[a]
     for q in range(2):
         pr, pj = 0.0, 0.0
         for a in range(m):
             pr += U[a, q] * r[a]
-            pj += U[a, q] * J[a, 0]
+            pj += U[a, q] * jl[a]
         hll += dw[q] * pj * pj
         gl += dw[q] * pj * pr
     return hll, gl
@@ -81,19 +97,16 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
         for q in range(2):
             dw[q] = 2.0 * d[i, q] + d[i, q] * d[i, q]
         li = lam[i]
-        # schur: `iters` steps, then the evaluation the elimination uses; refine only:
-        # `iters` steps, the last one not re-evaluated (E, hll_out: before it)
-        n_eval = iters + 1 if schur else max(iters, 1)
+        # `iters` depth steps (refine only: at least one; E and hll_out before the last),
+        # then, for the elimination, one evaluation of every column at the refined depth
         ei = 0.0
-        for it in range(n_eval):
-            r, J, _ = _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
-                                a_off, target, right, uv, vel, off, basis, C, ad_inv, sphere, sigma,
-                                kind, kk, li)
+        for it in range(iters if schur else max(iters, 1)):
+            r, jl = _eval_lam(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
+                              a_off, target, right, uv, vel, off, basis, C, sphere, sigma, kind,
+                              kk, li)
             r *= inv
-            J *= inv
-            if schur and it == iters:
-                break
-            hll, gl = _depth_terms(r, J, Ui, dw)
+            jl *= inv
+            hll, gl = _depth_terms(r, jl, Ui, dw)
             hll += p_info[i]
             gl += p_info[i] * (li - p_lam[i])
             if not hll > 0.0:
@@ -110,6 +123,10 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
         if not schur:
             E += ei
             continue
+        r, J, _ = _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off,
+                            target, right, uv, vel, off, basis, C, ad_inv, sphere, sigma, kind, kk, li)
+        r *= inv
+        J *= inv
         pres = li - p_lam[i]
         E += _schur_add(r, J, Ui, dw, target[s0:s1], lbodies[lb_start[i]:lb_start[i + 1]], use_td, D, H, g,
                         p_info[i], pres, hll_out, i)
@@ -205,15 +222,14 @@ def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i
 
 @_njit
 def _set_whitening(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
-                   right, uv, vel, off, basis, C, ad_inv, sphere, sigma, kind, kk, lam, U, d):
-    """U, d of every landmark; ``sigma``, ``kind``, ``kk`` (1, 0, 1: unweighted) come from
-    Python so that ``_eval_one`` has bundle_system's argument types (a literal 0 here
-    compiled a second version of it and of track_eval)."""
+                   right, uv, vel, off, basis, C, sphere, lam, U, d):
+    """U, d of every landmark, from ``track_eval_g``'s ``dr/duv_anchor`` at ``lam``."""
     for i in range(lam.shape[0]):
         s0, s1 = start[i], start[i + 1]
-        _, _, G = _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off,
-                            target, right, uv, vel, off, basis, C, ad_inv, sphere, sigma, kind, kk,
-                            lam[i])
+        lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
+        G = np.empty((s1 - s0, 2, 2))
+        track_eval_g(lb, target[s0:s1], right[s0:s1], C, Tc, lam[i], td, use_td, a_uv[i], a_vel[i],
+                     a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, G)
         Ui = np.zeros((2 * (s1 - s0), 2))
         di = np.zeros(2)
         whitening_2(G.reshape(2 * (s1 - s0), 2), Ui, di)

@@ -108,6 +108,110 @@ def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.
 
 
 @_njit
+def _target_point(Tj: np.ndarray, Rc: np.ndarray, tc: np.ndarray, lam: float, pw: np.ndarray,
+                  wi: np.ndarray, RcTtc: np.ndarray, qbj: np.ndarray, e: np.ndarray,
+                  Cm: np.ndarray, Q: np.ndarray, dl: np.ndarray) -> None:
+    """Q (3,), ``Cm = (R_j R_c)^T`` (3, 3) and ``dl = D[:, COL_LAM]`` (3,) of
+    ``factors.projection._transfer_into`` for target body ``Tj`` (4, 4), in its order of
+    operations (the same bits); ``qbj``, ``e``: (3,) scratch."""
+    for a in range(3):
+        qbj[a] = 0.0
+        for k in range(3):
+            qbj[a] += Tj[k, a] * (pw[k] - lam * Tj[k, 3])
+            Cm[a, k] = 0.0
+            for c in range(3):
+                Cm[a, k] += Rc[c, a] * Tj[k, c]
+        e[a] = wi[a] - Tj[a, 3]
+    for a in range(3):
+        Q[a] = 0.0
+        dl[a] = -RcTtc[a]
+        for k in range(3):
+            Q[a] += Rc[k, a] * (qbj[k] - lam * tc[k])
+            dl[a] += Cm[a, k] * e[k]
+
+
+@_njit
+def track_eval_lam(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
+                   Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
+                   anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
+                   off: np.ndarray, basis: np.ndarray, sphere: bool, sigma: float, kind: int,
+                   kk: float, r: np.ndarray, jl: np.ndarray) -> None:
+    """:func:`track_eval`'s ``r`` (2n,) and its inverse-depth column ``jl = J[:, 0]`` (2n,),
+    reweighted, without the pose, extrinsic and td columns or the whitening: what a
+    Gauss-Newton step on ``lam`` alone needs (``factors.landmark_schur_kernel``'s depth
+    refinement), at a fraction of the cost. Same arithmetic as ``track_eval`` for these
+    entries, so the same values (``tests/test_track_kernel.py``)."""
+    n = uv.shape[0]
+    ui = np.empty(2)
+    s_i = td + anchor_off if use_td else 0.0
+    ui[0] = anchor_uv[0] - s_i * anchor_vel[0]
+    ui[1] = anchor_uv[1] - s_i * anchor_vel[1]
+    pw, wi, RcTtc, _, _, _ = _anchor_terms(bodies[0], Tc, lam, ui)
+    Rc, tc = Tc[:3, :3], Tc[:3, 3]
+    Tj, Q, dl = np.empty((4, 4)), np.empty(3), np.empty(3)
+    qbj, e, Cm = np.empty(3), np.empty(3), np.empty((3, 3))
+    dQ, duv, ra, uj = np.empty((2, 3)), np.empty((2, 2)), np.empty(2), np.empty(2)
+    for o in range(n):
+        _virtual_body(bodies, target[o], right[o], C, Tj)
+        s_j = td + off[o] if use_td else 0.0
+        uj[0] = uv[o, 0] - s_j * vel[o, 0]
+        uj[1] = uv[o, 1] - s_j * vel[o, 1]
+        _target_point(Tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
+        ok = _model_into(Q, uj, basis[o], sphere, ra, dQ, duv)
+        for k in range(2):
+            row = 2 * o + k
+            if not ok:
+                r[row] = BEHIND_CAMERA_RESIDUAL
+                jl[row] = 0.0
+                continue
+            r[row] = ra[k]
+            jl[row] = 0.0 + (dQ[k, 0] * dl[0] + dQ[k, 1] * dl[1] + dQ[k, 2] * dl[2])
+    if kind != 0:
+        for o in range(n):
+            s = np.sqrt(r[2 * o] * r[2 * o] + r[2 * o + 1] * r[2 * o + 1]) / sigma
+            if kind == 1:
+                w = 1.0 if s <= kk else kk / s
+            else:
+                w = 1.0 / (1.0 + (s / kk) ** 2)
+            sw = np.sqrt(w)
+            for k in range(2):
+                r[2 * o + k] *= sw
+                jl[2 * o + k] *= sw
+
+
+@_njit
+def track_eval_g(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
+                 Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
+                 anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
+                 off: np.ndarray, basis: np.ndarray, sphere: bool, G: np.ndarray) -> None:
+    """:func:`track_eval`'s ``G`` (n, 2, 2) = ``dr/duv_anchor`` alone (the anchor-noise
+    whitening's input), the same values without the Jacobian's columns."""
+    n = uv.shape[0]
+    ui = np.empty(2)
+    s_i = td + anchor_off if use_td else 0.0
+    ui[0] = anchor_uv[0] - s_i * anchor_vel[0]
+    ui[1] = anchor_uv[1] - s_i * anchor_vel[1]
+    pw, wi, RcTtc, A, _, _ = _anchor_terms(bodies[0], Tc, lam, ui)
+    Rc, tc = Tc[:3, :3], Tc[:3, 3]
+    Tj, Q, dl, M = np.empty((4, 4)), np.empty(3), np.empty(3), np.empty((3, 3))
+    qbj, e, Cm = np.empty(3), np.empty(3), np.empty((3, 3))
+    dQ, duv, ra, uj = np.empty((2, 3)), np.empty((2, 2)), np.empty(2), np.empty(2)
+    for o in range(n):
+        _virtual_body(bodies, target[o], right[o], C, Tj)
+        s_j = td + off[o] if use_td else 0.0
+        uj[0] = uv[o, 0] - s_j * vel[o, 0]
+        uj[1] = uv[o, 1] - s_j * vel[o, 1]
+        _target_point(Tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
+        for a in range(3):
+            for k in range(3):
+                M[a, k] = Cm[a, 0] * A[0, k] + Cm[a, 1] * A[1, k] + Cm[a, 2] * A[2, k]
+        ok = _model_into(Q, uj, basis[o], sphere, ra, dQ, duv)
+        for k in range(2):
+            for c in range(2):
+                G[o, k, c] = (dQ[k, 0] * M[0, c] + dQ[k, 1] * M[1, c] + dQ[k, 2] * M[2, c]) if ok else 0.0
+
+
+@_njit
 def _add_body_block(J: np.ndarray, row: int, t: int, right: bool, blk: np.ndarray,
                     ad_inv: np.ndarray) -> None:
     """Add an observation's 2x6 body block ``blk`` (times ``Ad(C^-1)`` for cam1) onto
