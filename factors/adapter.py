@@ -70,13 +70,14 @@ def read_value(values: gtsam.Values, key: int, kind: KeyKind):
 
 
 def _same_args(a: list, b: list) -> bool:
-    """Bitwise equality of two argument lists of ``custom_factor`` callbacks (poses compared
-    with ``Pose3.equals`` at tolerance 0: exact; NaN never equal)."""
+    """Bitwise equality of two argument lists of ``custom_factor`` callbacks: poses with
+    ``Pose3.equals`` at tolerance 0 (exact; NaN never equal), vectors by their bytes (a
+    key's vector keeps its length; 0.3 us against ``np.array_equal``'s 3.5)."""
     for x, y in zip(a, b):
         if isinstance(x, gtsam.Pose3):
             if not x.equals(y, 0.0):
                 return False
-        elif not np.array_equal(x, y):
+        elif x.tobytes() != y.tobytes():
             return False
     return True
 
