@@ -141,7 +141,7 @@ def set_whitening(bundle: Bundle, bodies: np.ndarray, Tc: np.ndarray, td: float)
     _set_whitening(np.ascontiguousarray(bodies, float), np.ascontiguousarray(Tc, float), float(td),
                    bundle.use_td, bundle.start, bundle.lb_start, bundle.lbodies, bundle.a_uv, bundle.a_vel,
                    bundle.a_off, bundle.target, bundle.right, bundle.uv, bundle.vel, bundle.off,
-                   bundle.basis, bundle.C, bundle.sphere, bundle.lam, bundle.U, bundle.d)
+                   bundle.basis, bundle.C, bundle.sphere, 1.0, 0, 1.0, bundle.lam, bundle.U, bundle.d)
 
 
 def linearize(bundle: Bundle, bodies: np.ndarray, Tc: np.ndarray, td: float,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.track_kernel import track_eval, track_eval_g, track_eval_lam, whitening_2
+from factors.track_kernel import track_eval, track_eval_depth, whitening_2
 
 
 
@@ -42,18 +42,19 @@ def _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, 
 
 
 @_njit
-def _eval_lam(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
-              right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam):
-    """``_eval_one``'s r (2n,) and J[:, 0] (2n,) alone (``track_eval_lam``): a depth step's
-    inputs without the landmark's pose columns."""
+def _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
+                right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam, with_g):
+    """``_eval_one``'s r (2n,), J[:, 0] (2n,) and, ``with_g``, G (n, 2, 2) alone
+    (``track_eval_depth``): a depth step's inputs, the whitening's, without the pose columns."""
     s0, s1 = start[i], start[i + 1]
     lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
     r = np.empty(2 * (s1 - s0))
-    jl = np.empty(2 * (s1 - s0))
-    track_eval_lam(lb, target[s0:s1], right[s0:s1], C, Tc, lam, td, use_td, a_uv[i], a_vel[i],
-                   a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, sigma, kind,
-                   kk, r, jl)
-    return r, jl
+    jl = np.empty((1, 2 * (s1 - s0))).T   # Fortran order: _reweight_whiten's J type
+    G = np.empty((s1 - s0, 2, 2))
+    track_eval_depth(lb, target[s0:s1], right[s0:s1], C, Tc, lam, td, use_td, a_uv[i], a_vel[i],
+                     a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, sigma, kind,
+                     kk, r, jl, G, with_g)
+    return r, jl[:, 0], G
 
 
 @_njit
@@ -101,9 +102,9 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
         # then, for the elimination, one evaluation of every column at the refined depth
         ei = 0.0
         for it in range(iters if schur else max(iters, 1)):
-            r, jl = _eval_lam(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
-                              a_off, target, right, uv, vel, off, basis, C, sphere, sigma, kind,
-                              kk, li)
+            r, jl, _ = _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
+                                   a_off, target, right, uv, vel, off, basis, C, sphere, sigma, kind,
+                                   kk, li, False)
             r *= inv
             jl *= inv
             hll, gl = _depth_terms(r, jl, Ui, dw)
@@ -222,14 +223,15 @@ def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i
 
 @_njit
 def _set_whitening(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
-                   right, uv, vel, off, basis, C, sphere, lam, U, d):
-    """U, d of every landmark, from ``track_eval_g``'s ``dr/duv_anchor`` at ``lam``."""
+                   right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam, U, d):
+    """U, d of every landmark, from ``track_eval_depth``'s ``dr/duv_anchor`` at ``lam``;
+    ``sigma``, ``kind``, ``kk`` (1, 0, 1: unweighted) come from Python so that
+    ``_eval_depth`` has bundle_system's argument types (a literal 0 here would compile a
+    second version of it)."""
     for i in range(lam.shape[0]):
         s0, s1 = start[i], start[i + 1]
-        lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
-        G = np.empty((s1 - s0, 2, 2))
-        track_eval_g(lb, target[s0:s1], right[s0:s1], C, Tc, lam[i], td, use_td, a_uv[i], a_vel[i],
-                     a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, G)
+        _, _, G = _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off,
+                              target, right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam[i], True)
         Ui = np.zeros((2 * (s1 - s0), 2))
         di = np.zeros(2)
         whitening_2(G.reshape(2 * (s1 - s0), 2), Ui, di)

@@ -47,6 +47,18 @@ def _virtual_body(bodies: np.ndarray, t: int, right: bool, C: np.ndarray, out: n
 
 
 @_njit
+def _shifted_anchor_terms(Ti: np.ndarray, Tc: np.ndarray, lam: float, td: float, use_td: bool,
+                          anchor_uv: np.ndarray, anchor_vel: np.ndarray, anchor_off: float):
+    """``factors.projection._anchor_terms`` at the anchor observation moved by
+    ``(td + anchor_off) anchor_vel`` (with ``use_td``)."""
+    ui = np.empty(2)
+    s_i = td + anchor_off if use_td else 0.0
+    ui[0] = anchor_uv[0] - s_i * anchor_vel[0]
+    ui[1] = anchor_uv[1] - s_i * anchor_vel[1]
+    return _anchor_terms(Ti, Tc, lam, ui)
+
+
+@_njit
 def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
                ad_inv: np.ndarray, Tc: np.ndarray, lam: float, td: float, use_td: bool,
                anchor_uv: np.ndarray, anchor_vel: np.ndarray, anchor_off: float,
@@ -61,11 +73,8 @@ def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.
     ``d`` (q,). With ``use_td`` the observations are shifted by ``(td + off) vel`` and
     the last column of ``J`` is ``dr/dtd``."""
     n = uv.shape[0]
-    ui = np.empty(2)
-    s_i = td + anchor_off if use_td else 0.0
-    ui[0] = anchor_uv[0] - s_i * anchor_vel[0]
-    ui[1] = anchor_uv[1] - s_i * anchor_vel[1]
-    pw, wi, RcTtc, A, Sm, Gi = _anchor_terms(bodies[0], Tc, lam, ui)
+    pw, wi, RcTtc, A, Sm, Gi = _shifted_anchor_terms(bodies[0], Tc, lam, td, use_td, anchor_uv, anchor_vel,
+                                                     anchor_off)
     Rc, tc = Tc[:3, :3], Tc[:3, 3]
     Tj, Rj, tj = np.empty((4, 4)), np.empty((3, 3)), np.empty(3)
     Q, M, D = np.empty(3), np.empty((3, 3)), np.empty((3, 19))
@@ -131,67 +140,21 @@ def _target_point(Tj: np.ndarray, Rc: np.ndarray, tc: np.ndarray, lam: float, pw
 
 
 @_njit
-def track_eval_lam(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
-                   Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
-                   anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
-                   off: np.ndarray, basis: np.ndarray, sphere: bool, sigma: float, kind: int,
-                   kk: float, r: np.ndarray, jl: np.ndarray) -> None:
-    """:func:`track_eval`'s ``r`` (2n,) and its inverse-depth column ``jl = J[:, 0]`` (2n,),
-    reweighted, without the pose, extrinsic and td columns or the whitening: what a
-    Gauss-Newton step on ``lam`` alone needs (``factors.landmark_schur_kernel``'s depth
-    refinement), at a fraction of the cost. Same arithmetic as ``track_eval`` for these
-    entries, so the same values (``tests/test_track_kernel.py``)."""
+def track_eval_depth(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
+                     Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
+                     anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
+                     off: np.ndarray, basis: np.ndarray, sphere: bool, sigma: float, kind: int,
+                     kk: float, r: np.ndarray, jl: np.ndarray, G: np.ndarray, with_g: bool) -> None:
+    """:func:`track_eval`'s ``r`` (2n,) and inverse-depth column ``jl = J[:, :1]`` (2n, 1;
+    Fortran order, as ``track_eval``'s J), reweighted, and with ``with_g`` its ``G``
+    (n, 2, 2), without the pose, extrinsic and td columns or the whitening: what a
+    Gauss-Newton step on ``lam`` alone needs, and what the anchor-noise whitening needs
+    (``factors.landmark_schur_kernel``), at a fraction of the cost. The operations are
+    ``track_eval``'s in its order, so the values are the same bits
+    (``tests/test_track_kernel.py``)."""
     n = uv.shape[0]
-    ui = np.empty(2)
-    s_i = td + anchor_off if use_td else 0.0
-    ui[0] = anchor_uv[0] - s_i * anchor_vel[0]
-    ui[1] = anchor_uv[1] - s_i * anchor_vel[1]
-    pw, wi, RcTtc, _, _, _ = _anchor_terms(bodies[0], Tc, lam, ui)
-    Rc, tc = Tc[:3, :3], Tc[:3, 3]
-    Tj, Q, dl = np.empty((4, 4)), np.empty(3), np.empty(3)
-    qbj, e, Cm = np.empty(3), np.empty(3), np.empty((3, 3))
-    dQ, duv, ra, uj = np.empty((2, 3)), np.empty((2, 2)), np.empty(2), np.empty(2)
-    for o in range(n):
-        _virtual_body(bodies, target[o], right[o], C, Tj)
-        s_j = td + off[o] if use_td else 0.0
-        uj[0] = uv[o, 0] - s_j * vel[o, 0]
-        uj[1] = uv[o, 1] - s_j * vel[o, 1]
-        _target_point(Tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
-        ok = _model_into(Q, uj, basis[o], sphere, ra, dQ, duv)
-        for k in range(2):
-            row = 2 * o + k
-            if not ok:
-                r[row] = BEHIND_CAMERA_RESIDUAL
-                jl[row] = 0.0
-                continue
-            r[row] = ra[k]
-            jl[row] = 0.0 + (dQ[k, 0] * dl[0] + dQ[k, 1] * dl[1] + dQ[k, 2] * dl[2])
-    if kind != 0:
-        for o in range(n):
-            s = np.sqrt(r[2 * o] * r[2 * o] + r[2 * o + 1] * r[2 * o + 1]) / sigma
-            if kind == 1:
-                w = 1.0 if s <= kk else kk / s
-            else:
-                w = 1.0 / (1.0 + (s / kk) ** 2)
-            sw = np.sqrt(w)
-            for k in range(2):
-                r[2 * o + k] *= sw
-                jl[2 * o + k] *= sw
-
-
-@_njit
-def track_eval_g(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
-                 Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
-                 anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
-                 off: np.ndarray, basis: np.ndarray, sphere: bool, G: np.ndarray) -> None:
-    """:func:`track_eval`'s ``G`` (n, 2, 2) = ``dr/duv_anchor`` alone (the anchor-noise
-    whitening's input), the same values without the Jacobian's columns."""
-    n = uv.shape[0]
-    ui = np.empty(2)
-    s_i = td + anchor_off if use_td else 0.0
-    ui[0] = anchor_uv[0] - s_i * anchor_vel[0]
-    ui[1] = anchor_uv[1] - s_i * anchor_vel[1]
-    pw, wi, RcTtc, A, _, _ = _anchor_terms(bodies[0], Tc, lam, ui)
+    pw, wi, RcTtc, A, _, _ = _shifted_anchor_terms(bodies[0], Tc, lam, td, use_td, anchor_uv, anchor_vel,
+                                                   anchor_off)
     Rc, tc = Tc[:3, :3], Tc[:3, 3]
     Tj, Q, dl, M = np.empty((4, 4)), np.empty(3), np.empty(3), np.empty((3, 3))
     qbj, e, Cm = np.empty(3), np.empty(3), np.empty((3, 3))
@@ -202,13 +165,19 @@ def track_eval_g(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: n
         uj[0] = uv[o, 0] - s_j * vel[o, 0]
         uj[1] = uv[o, 1] - s_j * vel[o, 1]
         _target_point(Tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
-        for a in range(3):
-            for k in range(3):
-                M[a, k] = Cm[a, 0] * A[0, k] + Cm[a, 1] * A[1, k] + Cm[a, 2] * A[2, k]
+        if with_g:   # M of factors.projection._transfer_into
+            for a in range(3):
+                for k in range(3):
+                    M[a, k] = Cm[a, 0] * A[0, k] + Cm[a, 1] * A[1, k] + Cm[a, 2] * A[2, k]
         ok = _model_into(Q, uj, basis[o], sphere, ra, dQ, duv)
         for k in range(2):
-            for c in range(2):
-                G[o, k, c] = (dQ[k, 0] * M[0, c] + dQ[k, 1] * M[1, c] + dQ[k, 2] * M[2, c]) if ok else 0.0
+            row = 2 * o + k
+            r[row] = ra[k] if ok else BEHIND_CAMERA_RESIDUAL
+            jl[row, 0] = 0.0 + (dQ[k, 0] * dl[0] + dQ[k, 1] * dl[1] + dQ[k, 2] * dl[2]) if ok else 0.0
+            if with_g:
+                for c in range(2):
+                    G[o, k, c] = (dQ[k, 0] * M[0, c] + dQ[k, 1] * M[1, c] + dQ[k, 2] * M[2, c]) if ok else 0.0
+    _reweight_whiten(r, jl, sigma, kind, kk, np.zeros((2 * n, 0)), np.zeros(0))
 
 
 @_njit

@@ -91,13 +91,13 @@ def test_cheirality_rows_are_constant_and_zero():
 @pytest.mark.parametrize("use_td", [False, True])
 @pytest.mark.parametrize("model", ["pinhole", "sphere"])
 @pytest.mark.parametrize("kernel", ["none", "huber", "cauchy"])
-def test_depth_column_and_anchor_jacobian_kernels_equal_the_full_pass(use_td, model, kernel):
-    """``track_eval_lam`` (r and the inverse-depth column) and ``track_eval_g`` (dr/duv of
-    the anchor) give ``track_eval``'s values to the bit, cam1 rows, td shifts, robust
+def test_depth_kernel_equals_the_full_pass(use_td, model, kernel):
+    """``track_eval_depth`` (r, the inverse-depth column and dr/duv of the anchor) gives
+    ``track_eval``'s values to the bit, cam1 rows, td shifts, robust
     weights and a camera facing away (pinhole: the constant residual, zero rows) included."""
     from factors.projection import tangent_basis
     from factors.robust import KERNELS
-    from factors.track_kernel import evaluate, track_eval_g, track_eval_lam
+    from factors.track_kernel import evaluate, track_eval_depth
     rng = np.random.default_rng(11)
     Ti, Tc = _pose(rng), _pose(rng, 0.05)
     flip = gtsam.Pose3(gtsam.Rot3.Ry(np.pi), np.zeros(3))
@@ -116,12 +116,10 @@ def test_depth_column_and_anchor_jacobian_kernels_equal_the_full_pass(use_td, mo
     if model == "pinhole":   # the far side (a sphere sees it)
         assert np.all(r[-2:] == r[-2]) and not J[-2:].any() and J[:-2, 0].any()
     kind, kk = (0, 1.0) if robust is None else (KERNELS.index(kernel), 1.0)
-    r2, jl, G2 = np.empty_like(r), np.empty_like(r), np.full_like(G, np.nan)
-    common = (bodies, target, right, rig.C, Tc.matrix(), lam, td or 0.0, use_td, a_uv, a_vel, 0.001,
-              uv, vel, off, basis, model == "sphere")
-    track_eval_lam(*common, sigma, kind, kk, r2, jl)
-    track_eval_g(*common, G2)
-    assert np.array_equal(r2, r) and np.array_equal(jl, J[:, 0]) and np.array_equal(G2, G)
+    r2, jl, G2 = np.empty_like(r), np.empty((1, len(r))).T, np.full_like(G, np.nan)
+    track_eval_depth(bodies, target, right, rig.C, Tc.matrix(), lam, td or 0.0, use_td, a_uv, a_vel,
+                     0.001, uv, vel, off, basis, model == "sphere", sigma, kind, kk, r2, jl, G2, True)
+    assert np.array_equal(r2, r) and np.array_equal(jl[:, 0], J[:, 0]) and np.array_equal(G2, G)
 
 
 @pytest.mark.parametrize("m", [2, 6, 20])
