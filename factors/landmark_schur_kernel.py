@@ -50,7 +50,7 @@ def _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel
     lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
     r = np.empty(2 * (s1 - s0))
     jl = np.empty((1, 2 * (s1 - s0))).T   # Fortran order: _reweight_whiten's J type
-    G = np.empty((s1 - s0, 2, 2))
+    G = np.empty((s1 - s0 if with_g else 0, 2, 2))
     track_eval_depth(lb, target[s0:s1], right[s0:s1], C, Tc, lam, td, use_td, a_uv[i], a_vel[i],
                      a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, sigma, kind,
                      kk, r, jl, G, with_g)

@@ -46,7 +46,7 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.jit import njit as _njit
+from factors.jit import njit as _njit, njit_inline
 
 MODELS = ("pinhole", "sphere")
 BEHIND_CAMERA_RESIDUAL = 2.0
@@ -179,25 +179,38 @@ def _anchor_terms(Ti: np.ndarray, Tc: np.ndarray, lam: float, uv_i: np.ndarray):
     return pw, wi, RcTtc, A, Sm, G
 
 
+@njit_inline
+def _target_point(Rj: np.ndarray, tj: np.ndarray, Rc: np.ndarray, tc: np.ndarray, lam: float,
+                  pw: np.ndarray, wi: np.ndarray, RcTtc: np.ndarray, qbj: np.ndarray, e: np.ndarray,
+                  C: np.ndarray, Q: np.ndarray, dl: np.ndarray) -> None:
+    """:func:`_transfer_into`'s Q, ``dl = dQ/dlam`` (3,) and its scratch ``qbj``, ``e`` (3,),
+    ``C = (R_j R_c)^T``: all a depth step needs (``track_kernel.track_eval_depth``)."""
+    for a in range(3):
+        qbj[a] = 0.0
+        for k in range(3):
+            qbj[a] += Rj[k, a] * (pw[k] - lam * tj[k])
+            C[a, k] = 0.0
+            for c in range(3):
+                C[a, k] += Rc[c, a] * Rj[k, c]  # (R_j R_c)^T = R_c^T R_j^T
+        e[a] = wi[a] - tj[a]
+    for a in range(3):
+        Q[a] = 0.0
+        dl[a] = -RcTtc[a]
+        for k in range(3):
+            Q[a] += Rc[k, a] * (qbj[k] - lam * tc[k])
+            dl[a] += C[a, k] * e[k]
+
+
 @_njit
 def _transfer_into(Rj: np.ndarray, tj: np.ndarray, Rc: np.ndarray, tc: np.ndarray, lam: float,
                    pw: np.ndarray, wi: np.ndarray, RcTtc: np.ndarray, A: np.ndarray,
                    Sm: np.ndarray, G: np.ndarray, Q: np.ndarray, M: np.ndarray,
                    D: np.ndarray) -> None:
     """Q (3,), M (3, 3) and D = dQ/d[lam, T_c, T_i, T_j] (3, 19) for one target frame."""
-    qbj, e, C, Sq = np.zeros(3), np.empty(3), np.zeros((3, 3)), np.empty((3, 3))
+    qbj, e, C, Sq = np.empty(3), np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    _target_point(Rj, tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, C, Q, D[:, COL_LAM])
     for a in range(3):
         for k in range(3):
-            qbj[a] += Rj[k, a] * (pw[k] - lam * tj[k])
-            for c in range(3):
-                C[a, k] += Rc[c, a] * Rj[k, c]  # (R_j R_c)^T = R_c^T R_j^T
-        e[a] = wi[a] - tj[a]
-    for a in range(3):
-        Q[a] = 0.0
-        D[a, COL_LAM] = -RcTtc[a]
-        for k in range(3):
-            Q[a] += Rc[k, a] * (qbj[k] - lam * tc[k])
-            D[a, COL_LAM] += C[a, k] * e[k]
             M[a, k] = C[a, 0] * A[0, k] + C[a, 1] * A[1, k] + C[a, 2] * A[2, k]
         for c in range(6):
             D[a, COL_TI + c] = C[a, 0] * G[0, c] + C[a, 1] * G[1, c] + C[a, 2] * G[2, c]

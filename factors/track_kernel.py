@@ -26,7 +26,7 @@ import numpy as np
 
 from factors.anchor_noise import AnchorWhitening
 from factors.projection import (BEHIND_CAMERA_RESIDUAL, COL_TJ, _anchor_terms, _model_into,
-                                _njit, _transfer_into)
+                                _njit, _target_point, _transfer_into)
 from factors.robust import KERNELS, RobustKernel
 
 _NO_D = np.zeros(0)
@@ -117,29 +117,6 @@ def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.
 
 
 @_njit
-def _target_point(Tj: np.ndarray, Rc: np.ndarray, tc: np.ndarray, lam: float, pw: np.ndarray,
-                  wi: np.ndarray, RcTtc: np.ndarray, qbj: np.ndarray, e: np.ndarray,
-                  Cm: np.ndarray, Q: np.ndarray, dl: np.ndarray) -> None:
-    """Q (3,), ``Cm = (R_j R_c)^T`` (3, 3) and ``dl = D[:, COL_LAM]`` (3,) of
-    ``factors.projection._transfer_into`` for target body ``Tj`` (4, 4), in its order of
-    operations (the same bits); ``qbj``, ``e``: (3,) scratch."""
-    for a in range(3):
-        qbj[a] = 0.0
-        for k in range(3):
-            qbj[a] += Tj[k, a] * (pw[k] - lam * Tj[k, 3])
-            Cm[a, k] = 0.0
-            for c in range(3):
-                Cm[a, k] += Rc[c, a] * Tj[k, c]
-        e[a] = wi[a] - Tj[a, 3]
-    for a in range(3):
-        Q[a] = 0.0
-        dl[a] = -RcTtc[a]
-        for k in range(3):
-            Q[a] += Rc[k, a] * (qbj[k] - lam * tc[k])
-            dl[a] += Cm[a, k] * e[k]
-
-
-@_njit
 def track_eval_depth(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.ndarray,
                      Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
                      anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
@@ -156,15 +133,20 @@ def track_eval_depth(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, 
     pw, wi, RcTtc, A, _, _ = _shifted_anchor_terms(bodies[0], Tc, lam, td, use_td, anchor_uv, anchor_vel,
                                                    anchor_off)
     Rc, tc = Tc[:3, :3], Tc[:3, 3]
-    Tj, Q, dl, M = np.empty((4, 4)), np.empty(3), np.empty(3), np.empty((3, 3))
+    Tj, Rj, tj = np.empty((4, 4)), np.empty((3, 3)), np.empty(3)
+    Q, dl, M = np.empty(3), np.empty(3), np.empty((3, 3))
     qbj, e, Cm = np.empty(3), np.empty(3), np.empty((3, 3))
     dQ, duv, ra, uj = np.empty((2, 3)), np.empty((2, 2)), np.empty(2), np.empty(2)
     for o in range(n):
         _virtual_body(bodies, target[o], right[o], C, Tj)
+        for a in range(3):
+            tj[a] = Tj[a, 3]
+            for b in range(3):
+                Rj[a, b] = Tj[a, b]
         s_j = td + off[o] if use_td else 0.0
         uj[0] = uv[o, 0] - s_j * vel[o, 0]
         uj[1] = uv[o, 1] - s_j * vel[o, 1]
-        _target_point(Tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
+        _target_point(Rj, tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
         if with_g:   # M of factors.projection._transfer_into
             for a in range(3):
                 for k in range(3):
