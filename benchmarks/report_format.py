@@ -31,7 +31,12 @@ def machine_line(res: dict) -> str:
     sc = res.get("section_commits") or {}
     commit = (m.get("commit", "?") if len(set(sc.values())) <= 1
               else ", ".join(f"{k} at {v}" for k, v in sc.items()))
-    return (f"Machine: {m.get('cpu', '?')}, {m.get('cores', '?')} cores; Python {m.get('python', '?')}, "
+    by_cpu: dict[str, list[str]] = {}
+    for k, cpu in (res.get("section_machines") or {}).items():
+        by_cpu.setdefault(cpu, []).append(k)
+    cpu = (m.get("cpu", "?") if len(by_cpu) <= 1      # sections measured on different machines: name each
+           else "; ".join(f"{c} ({', '.join(ks)})" for c, ks in by_cpu.items()))
+    return (f"Machine: {cpu}, {m.get('cores', '?')} cores; Python {m.get('python', '?')}, "
             f"gtsam {m.get('gtsam', '?')}, numpy {m.get('numpy', '?')}; commit {commit}; "
             f"{res.get('created', '')}{' (quick)' if res.get('quick') else ''}")
 

@@ -239,6 +239,24 @@ def run_micro(quick: bool, log=print) -> dict:
 
 
 # ------------------------------------------------------------------ entry
+def record_section(results: dict, name: str, modes: list[str] | None) -> None:
+    """Note the commit and machine that measured section ``name`` (``section_commits``,
+    ``section_machines``): refreshed accuracy modes get a key of their own, and the
+    earlier keys whose rows they all replaced (or all of them, at a full run) are dropped."""
+    commits = results.setdefault("section_commits", {})
+    machines = results.setdefault("section_machines", {})
+    if name == "accuracy":
+        for k in [k for k in commits if k.startswith("accuracy[")
+                  and (not modes or set(k[len("accuracy["):-1].split(",")) <= set(modes))]:
+            del commits[k]
+        if modes:
+            name = f"accuracy[{','.join(modes)}]"
+    for k in [k for k in machines if k not in commits]:
+        del machines[k]
+    commits[name] = results["machine"]["commit"]
+    machines[name] = results["machine"]["cpu"]
+
+
 def machine() -> dict:
     import platform
     from importlib import metadata
@@ -300,6 +318,8 @@ def main(argv: list[str] | None = None) -> int:
         results = json.loads(prev.read_text())
         if results.get("quick") != args.quick:
             ap.error(f"{prev} was written with quick={results.get('quick')}; use another --out")
+    if results.get("section_commits") and "section_machines" not in results:   # written before they were kept
+        results["section_machines"] = {k: results.get("machine", {}).get("cpu", "?") for k in results["section_commits"]}
     results.update(machine=machine(), quick=args.quick, created=time.strftime("%Y-%m-%d %H:%M:%S"),
                    cache=str(ds.cache_dir()))
     modes = [m.strip() for m in args.modes.split(",")] if args.modes else None
@@ -312,13 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         s0 = time.perf_counter()
         results[name] = runners[name](args.quick, log=lambda m: print(m, flush=True))
         results[name + "_seconds"] = time.perf_counter() - s0
-        commits = results.setdefault("section_commits", {})
-        if name == "accuracy" and modes:           # refreshed modes carry their own commit
-            name = f"accuracy[{','.join(modes)}]"
-        elif name == "accuracy":
-            for k in [k for k in commits if k.startswith("accuracy[")]:
-                del commits[k]
-        commits[name] = results["machine"]["commit"]
+        record_section(results, name, modes)
         (args.out / "results.json").write_text(json.dumps(results, indent=1))
     results["total_seconds"] = sum(results.get(s + "_seconds", 0.0) for s in SECTIONS)
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
