@@ -168,8 +168,9 @@ MODE_DEFAULTS["mono"]["backend"]["keyframe"]["min_parallax_px"] = 30.0
 # mean ATE 0.1 / 0.05 / 0.03 / 0.02 / 0.01 m: 60.9 / 53.4 / 52.9 / 58.0 / 103.6 mm (13 of 17
 # better at 0.05; Sim3 scale mean +0.74 / +0.18 / -0.43 / -0.60 / -1.19 %: tighter pulls
 # short); 16 starts none of those used (5, 15, ..., 155) 68.7 -> 57.4 mm (13 better), the
-# moved-stamp copies' 17 starts at td +12 / -20 ms 75.0 -> 55.4 / 63.7 -> 56.6 mm; from frame 0 and the moved-stamp copies (td -20 / +12 / +25 ms) 0.060 / 0.056 /
-# 0.089 / 0.074 -> 0.045 / 0.043 / 0.064 / 0.045 m. Real MH_01 mono 7 stretches 6.02 mm and
+# moved-stamp copies' 17 starts at td +12 / -20 ms 75.0 -> 55.4 / 63.7 -> 56.6 mm; from frame 0
+# and the moved-stamp copies (td -20 / +12 / +25 ms) 0.060 / 0.056 / 0.089 / 0.074 -> 0.045 /
+# 0.043 / 0.064 / 0.045 m. Real MH_01 mono 7 stretches 6.02 mm and
 # the mono renders (sim13 0.011 m, seeds 82 / 84 11.6 / 22.0 -> 11.7 / 22.4 mm) unchanged.
 # Not for the other modes: on generated 60-s feature tracks 0.05 lost (issue 20's variants
 # under 0.2 % of the path 25 -> 22 of 31, td 25-ms rows on MH_03 +20-58 %) and real MH_01
