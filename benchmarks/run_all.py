@@ -319,7 +319,8 @@ def main(argv: list[str] | None = None) -> int:
         if results.get("quick") != args.quick:
             ap.error(f"{prev} was written with quick={results.get('quick')}; use another --out")
     if results.get("section_commits") and "section_machines" not in results:   # written before they were kept
-        results["section_machines"] = {k: results.get("machine", {}).get("cpu", "?") for k in results["section_commits"]}
+        old_cpu = results.get("machine", {}).get("cpu", "?")
+        results["section_machines"] = {k: old_cpu for k in results["section_commits"]}
     results.update(machine=machine(), quick=args.quick, created=time.strftime("%Y-%m-%d %H:%M:%S"),
                    cache=str(ds.cache_dir()))
     modes = [m.strip() for m in args.modes.split(",")] if args.modes else None
