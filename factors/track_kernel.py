@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from factors.anchor_noise import AnchorWhitening
+from factors.jit import njit_inline
 from factors.projection import (BEHIND_CAMERA_RESIDUAL, COL_TJ, _anchor_terms, _model_into,
                                 _njit, _target_point, _transfer_into)
 from factors.robust import KERNELS, RobustKernel
@@ -44,6 +45,21 @@ def _virtual_body(bodies: np.ndarray, t: int, right: bool, C: np.ndarray, out: n
                 out[a, b] = s
             else:
                 out[a, b] = bodies[t, a, b]
+
+
+@njit_inline
+def _observation(bodies: np.ndarray, t: int, right: bool, C: np.ndarray, uv: np.ndarray,
+                 vel: np.ndarray, o: int, s_j: float, Tj: np.ndarray, Rj: np.ndarray, tj: np.ndarray,
+                 uj: np.ndarray) -> None:
+    """Observation ``o``'s observing body ``Tj`` (``_virtual_body``), its rotation ``Rj`` and
+    translation ``tj``, and ``uj = uv[o] - s_j vel[o]``, the observation moved by its time shift."""
+    _virtual_body(bodies, t, right, C, Tj)
+    for a in range(3):
+        tj[a] = Tj[a, 3]
+        for b in range(3):
+            Rj[a, b] = Tj[a, b]
+    uj[0] = uv[o, 0] - s_j * vel[o, 0]
+    uj[1] = uv[o, 1] - s_j * vel[o, 1]
 
 
 @_njit
@@ -82,14 +98,8 @@ def track_eval(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, C: np.
     blk = np.empty((2, 6))
     tdcol = J.shape[1] - 1
     for o in range(n):
-        _virtual_body(bodies, target[o], right[o], C, Tj)
-        for a in range(3):
-            tj[a] = Tj[a, 3]
-            for b in range(3):
-                Rj[a, b] = Tj[a, b]
-        s_j = td + off[o] if use_td else 0.0
-        uj[0] = uv[o, 0] - s_j * vel[o, 0]
-        uj[1] = uv[o, 1] - s_j * vel[o, 1]
+        _observation(bodies, target[o], right[o], C, uv, vel, o, td + off[o] if use_td else 0.0,
+                     Tj, Rj, tj, uj)
         _transfer_into(Rj, tj, Rc, tc, lam, pw, wi, RcTtc, A, Sm, Gi, Q, M, D)
         ok = _model_into(Q, uj, basis[o], sphere, ra, dQ, duv)
         for k in range(2):
@@ -138,14 +148,8 @@ def track_eval_depth(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, 
     qbj, e, Cm = np.empty(3), np.empty(3), np.empty((3, 3))
     dQ, duv, ra, uj = np.empty((2, 3)), np.empty((2, 2)), np.empty(2), np.empty(2)
     for o in range(n):
-        _virtual_body(bodies, target[o], right[o], C, Tj)
-        for a in range(3):
-            tj[a] = Tj[a, 3]
-            for b in range(3):
-                Rj[a, b] = Tj[a, b]
-        s_j = td + off[o] if use_td else 0.0
-        uj[0] = uv[o, 0] - s_j * vel[o, 0]
-        uj[1] = uv[o, 1] - s_j * vel[o, 1]
+        _observation(bodies, target[o], right[o], C, uv, vel, o, td + off[o] if use_td else 0.0,
+                     Tj, Rj, tj, uj)
         _target_point(Rj, tj, Rc, tc, lam, pw, wi, RcTtc, qbj, e, Cm, Q, dl)
         if with_g:   # M of factors.projection._transfer_into
             for a in range(3):
