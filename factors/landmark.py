@@ -41,8 +41,8 @@ import numpy as np
 from factors.adapter import FactorHealth, custom_factor
 from factors.anchor_noise import AnchorWhitening
 from factors import track_kernel
-from factors.projection import (COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, check_model,
-                                project_batch, tangent_basis)
+from factors.bearing_model import check_model, tangent_basis
+from factors.projection import COL_LAM, COL_TC, COL_TI, COL_TJ, Projected, project_batch
 from factors.robust import RobustKernel, block_sqrt_weights
 from factors.td_projection import td_project_batch
 

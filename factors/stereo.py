@@ -34,7 +34,8 @@ import numpy as np
 from factors.adapter import FactorHealth, custom_factor
 from factors.anchor_noise import AnchorWhitening
 from factors import track_kernel
-from factors.projection import Projected, check_model, project_batch, tangent_basis
+from factors.bearing_model import check_model, tangent_basis
+from factors.projection import Projected, project_batch
 from factors.robust import RobustKernel
 from factors.td_projection import td_project_batch
 

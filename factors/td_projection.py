@@ -29,8 +29,8 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.projection import (Projected, check_model, project_batch, single_blocks,
-                                tangent_basis)
+from factors.bearing_model import check_model, tangent_basis
+from factors.projection import Projected, project_batch, single_blocks
 
 
 @dataclass(frozen=True)

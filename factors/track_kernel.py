@@ -26,8 +26,8 @@ import numpy as np
 
 from factors.anchor_noise import AnchorWhitening
 from factors.jit import njit_inline
-from factors.projection import (BEHIND_CAMERA_RESIDUAL, COL_TJ, _anchor_terms, _model_into,
-                                _njit, _target_point, _transfer_into)
+from factors.bearing_model import BEHIND_CAMERA_RESIDUAL, _model_into
+from factors.projection import COL_TJ, _anchor_terms, _njit, _target_point, _transfer_into
 from factors.robust import KERNELS, RobustKernel
 
 _NO_D = np.zeros(0)

@@ -27,7 +27,7 @@ import numpy as np
 
 from factors.adapter import custom_factor
 from factors.jit import njit
-from factors.projection import BEHIND_CAMERA_RESIDUAL
+from factors.bearing_model import BEHIND_CAMERA_RESIDUAL
 
 MIN_DEPTH = 1e-3
 

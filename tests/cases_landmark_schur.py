@@ -16,7 +16,7 @@ from cases_projection import random_pose
 from factors import track_kernel
 from factors.anchor_noise import AnchorWhitening
 from factors.landmark_schur import bundle_factor, linearize, pack, refine, set_whitening
-from factors.projection import tangent_basis
+from factors.bearing_model import tangent_basis
 from jacobian_case import ReducedCase
 
 SIGMA = 0.004

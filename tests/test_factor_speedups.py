@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from factors import landmark, stereo
-from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis
+from factors.bearing_model import tangent_basis
+from factors.projection import anchor_jacobian_batch, project_batch
 from vio.backend import graph
 from vio.backend.config import BackendConfig
 from vio.backend.landmarks import Obs, Track

@@ -10,7 +10,8 @@ import pytest
 
 from cases_projection import C, L, SIGMA, T, X, scene
 from factors.landmark import landmark_factor, landmark_residual, make_track
-from factors.projection import BEHIND_CAMERA_RESIDUAL, projection_factor, projection_residual
+from factors.bearing_model import BEHIND_CAMERA_RESIDUAL
+from factors.projection import projection_factor, projection_residual
 from factors.robust import RobustKernel
 from factors.td_projection import TdObservation, td_projection_factor, td_projection_residual
 

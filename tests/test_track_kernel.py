@@ -95,7 +95,7 @@ def test_depth_kernel_equals_the_full_pass(use_td, model, kernel):
     """``track_eval_depth`` (r, the inverse-depth column and dr/duv of the anchor) gives
     ``track_eval``'s values to the bit, cam1 rows, td shifts, robust
     weights and a camera facing away (pinhole: the constant residual, zero rows) included."""
-    from factors.projection import tangent_basis
+    from factors.bearing_model import tangent_basis
     from factors.robust import KERNELS
     from factors.track_kernel import evaluate, track_eval_depth
     rng = np.random.default_rng(11)

@@ -45,7 +45,7 @@ import gtsam
 import numpy as np
 
 from factors import landmark_schur
-from factors.projection import tangent_basis
+from factors.bearing_model import tangent_basis
 from vio.backend import graph
 from vio.backend.health import outlier_limit_px
 from vio.backend.landmarks import Track

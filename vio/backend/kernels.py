@@ -6,7 +6,8 @@ import gtsam
 import numpy as np
 
 from factors.landmark import landmark_anchor_jacobian, landmark_residual, make_track
-from factors.projection import anchor_jacobian_batch, project_batch, tangent_basis, transfer_point
+from factors.bearing_model import tangent_basis
+from factors.projection import anchor_jacobian_batch, project_batch, transfer_point
 from factors.robust import RobustKernel, reweight_blocks
 from factors.track_kernel import whitening
 from vio.backend.graph import image_velocity

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.projection import tangent_basis
+from factors.bearing_model import tangent_basis
 from vio.backend.graph import _zero_fast_rows, row_offsets
 from vio.backend.landmarks import Obs, Track
 from vio.backend.td_velocity import predicted_velocities
