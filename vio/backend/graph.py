@@ -292,6 +292,13 @@ def camera_table(values: gtsam.Values, frames: list[int]) -> tuple[dict, np.ndar
             np.array([T.translation() for T in Ts]))
 
 
+def anchor_cameras(values: gtsam.Values, frames) -> dict[int, gtsam.Pose3]:
+    """``T_w_c`` of cam0 at each keyframe of ``frames`` that ``values`` holds (anchors
+    whose keyframe left the window are left out)."""
+    T_b_c = values.atPose3(EXTRINSIC)
+    return {f: values.atPose3(X(f)).compose(T_b_c) for f in frames if f is not None and values.exists(X(f))}
+
+
 def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values,
                         table: tuple | None = None) -> np.ndarray:
     """Normalized-plane reprojection error norms of the non-anchor observations, each

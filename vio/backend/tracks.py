@@ -327,14 +327,14 @@ class LandmarkManager(TrackFactorBuilder):
     def points_w(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
         """Ids (N,) and world points (N, 3) of the tracks in the graph."""
         pts, ids = [], []
-        T_b_c = values.atPose3(graph.EXTRINSIC)
+        cams = graph.anchor_cameras(values, {tr.anchor for tr in self.tracks.values() if tr.key is not None})
         for tr in self.tracks.values():
-            if tr.key is None or not values.exists(tr.key) or not values.exists(graph.X(tr.anchor)):
+            if tr.key is None or not values.exists(tr.key) or tr.anchor not in cams:
                 continue
             lam = float(values.atVector(tr.key)[0])
             if lam <= 0:
                 continue
-            pts.append(tr.anchor_point(values.atPose3(graph.X(tr.anchor)).compose(T_b_c), lam))
+            pts.append(tr.anchor_point(cams[tr.anchor], lam))
             ids.append(tr.lid)
         pids, ppts = self.points.points_w(values)
         return np.array(ids + pids, dtype=np.int64), np.array(pts + ppts).reshape(-1, 3)
