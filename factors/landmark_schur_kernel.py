@@ -131,6 +131,12 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
         pres = li - p_lam[i]
         E += _schur_add(r, J, Ui, dw, target[s0:s1], lbodies[lb_start[i]:lb_start[i + 1]], use_td, D, H, g,
                         p_info[i], pres, hll_out, i)
+    # the sums went into the lower triangle (the entries the Cholesky of
+    # factors.photometric_host.square_root_kernel reads, each summed as before): mirrored
+    if schur:
+        for a in range(D):
+            for b in range(a + 1, D):
+                H[a, b] = H[b, a]
     return E
 
 
@@ -149,9 +155,23 @@ def _column_map(lb, ncol, use_td, D):
 
 
 @_njit
+def _by_group_column(cols, k, cmap):
+    """Sort ``cols[:k]`` (local columns) in place by their group column ``cmap[cols]``
+    (insertion sort: ~20 entries, nearly in order)."""
+    for x in range(1, k):
+        c = cols[x]
+        y = x - 1
+        while y >= 0 and cmap[cols[y]] > cmap[c]:
+            cols[y + 1] = cols[y]
+            y -= 1
+        cols[y + 1] = c
+
+
+@_njit
 def _add_row_pairs(J, target, cmap, use_td, H):
     """``H += J_x^T J_x`` summed over each row pair's non-zero columns (``T_b_c``, the anchor,
-    the observation's own body, td), scattered through ``cmap``."""
+    the observation's own body, td), scattered through ``cmap``: the lower triangle only
+    (``bundle_system`` mirrors it)."""
     ncol = J.shape[1]
     nz = np.empty(20, np.int64)
     for o in range(target.shape[0]):
@@ -167,10 +187,11 @@ def _add_row_pairs(J, target, cmap, use_td, H):
         if use_td:
             nz[k] = ncol - 1
             k += 1
+        _by_group_column(nz, k, cmap)
         for x in range(k):
             a = nz[x]
             ga = cmap[a]
-            for y in range(k):
+            for y in range(x + 1):
                 b = nz[y]
                 H[ga, cmap[b]] += J[2 * o, a] * J[2 * o, b] + J[2 * o + 1, a] * J[2 * o + 1, b]
 
@@ -212,11 +233,16 @@ def _schur_add(r, J, U, dw, target, lb, use_td, D, H, g, pinfo, pres, hll_out, i
         for c in range(ncol):
             hx[c] = 0.0
     _add_row_pairs(J, target, cmap, use_td, H)
-    # whitening (rank 2) and elimination (rank 1), dense
+    # whitening (rank 2) and elimination (rank 1), dense over the lower triangle
     for a in range(1, ncol):
+        g[cmap[a]] += gx[a] - hx[a] * gl / hll
+    cols = np.arange(1, ncol)
+    _by_group_column(cols, ncol - 1, cmap)
+    for x in range(ncol - 1):
+        a = cols[x]
         ga = cmap[a]
-        g[ga] += gx[a] - hx[a] * gl / hll
-        for b in range(1, ncol):
+        for y in range(x + 1):
+            b = cols[y]
             H[ga, cmap[b]] += dw[0] * P[0, a] * P[0, b] + dw[1] * P[1, a] * P[1, b] - hx[a] * hx[b] / hll
     return 0.5 * (rr - gl * gl / hll)
 
