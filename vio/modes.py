@@ -92,6 +92,16 @@ MODE_DEFAULTS["mono"]["frontend"] = {"max_features": 200, "min_dist_px": 25}
 # 42.7 ms, ATE 10.0 / 14.5 / 9.2 -> 10.0 / 14.5 / 9.3 mm
 MODE_DEFAULTS["mono"]["backend"]["solver"] = {"outlier_update": "next_frame"}
 MODE_DEFAULTS["stereo"]["backend"]["solver"] = {"outlier_update": "next_frame"}
+# stereo and hybrid: the keyframe's bookkeeping after its update (outlier check with its depth
+# refinement, monitor, re-alignment, td re-anchoring) also waits for the next frame
+# (SolverConfig.bookkeeping), whose own work is ~1 ms. Real MH_01 stereo (Xeon VM, three
+# alternated pairs, in process): keyframe frames 50-51 -> 34-43 ms mean, p95 of all frames
+# 58-60 -> 42-50 ms, the frame after a keyframe 6.5 -> 11-14 ms; TUM output byte-identical.
+# Hybrid's outlier update runs "now", so its keyframe outputs are now the update's estimate
+# before the removal (58 of 94 moved, by at most 0.5 mm; the frames between are the same
+# bits, ATE 4.9 mm either way); p95 124 -> 102 ms in one pair
+MODE_DEFAULTS["stereo"]["backend"]["solver"]["bookkeeping"] = "next_frame"
+MODE_DEFAULTS["hybrid"]["backend"]["solver"]["bookkeeping"] = "next_frame"
 # stereo: cam1 decoded and matched at the keyframes only (and through the stereo
 # initialization's window), where the backend uses it; the image stage decides the keyframes
 # (vio.keyframes, FramePacket.keyframe; the same 95 on real MH_01). Real MH_01 stereo, medians

@@ -245,7 +245,12 @@ class SolverConfig:
     ``outlier_update``: the second update that takes the rejected landmarks' factors out
     after a keyframe's runs at once (``"now"``) or when the next frame arrives
     (``"next_frame"``, ``vio.backend.outlier_carry``): same updates in the same order, the
-    keyframe's frame does not wait for it."""
+    keyframe's frame does not wait for it. ``bookkeeping``: what follows a keyframe's
+    update (the outlier check, the divergence monitor, the scale refinement, the gravity
+    re-alignment, td re-anchoring: ``Estimator._after_update``) runs at once
+    (``"keyframe"``) or when the next frame arrives (``"next_frame"``), before anything
+    else of that frame: the same operations in the same order; the keyframe's own output
+    is the update's estimate, and a restart the monitor decides shows one frame later."""
 
     lag_s: float = 2.5
     relinearize_threshold: float = 0.01
@@ -258,6 +263,7 @@ class SolverConfig:
     extra_iterations: int = 0
     incremental_padding: bool = True
     outlier_update: Literal["now", "next_frame"] = "now"
+    bookkeeping: Literal["keyframe", "next_frame"] = "keyframe"
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("lag_s", "relinearize_threshold", "relinearize_skip", "td_relinearize_threshold",

@@ -129,6 +129,7 @@ class Estimator:
         self.realign = GapRealign(cfg.realign, np.asarray(self.params.n_gravity, float))
         self.gauge = GaugeAnchor(cfg.gauge)   # position and yaw held in the window (vio.backend.gauge)
         self.carry = OutlierCarry()           # SolverConfig.outlier_update "next_frame"
+        self._after: tuple | None = None      # SolverConfig.bookkeeping "next_frame"
 
     # ------------------------------------------------------------------ setup
     def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
@@ -166,6 +167,7 @@ class Estimator:
         self.smoother_factorization, self.qr_since = self.cfg.solver.factorization, None
         self.n_pad = 0
         self.carry.clear()
+        self._after = None
         self.t_start = state.t_ns if self.t_start is None else self.t_start
         self._bridge_t = None
         self.health.reset(state.t_ns, state.bias)
@@ -204,6 +206,7 @@ class Estimator:
         preintegrated across it; the whole interval since the last keyframe becomes a
         bridge (``BridgeConfig``: constant velocity and attitude with growing sigmas, bias
         random walk) until the next keyframe, after which IMU factors resume."""
+        self.finish_keyframe()
         self.rates.add_imu(seg)
         if ahead is not None:
             self.rates.add_imu(ahead)
@@ -241,6 +244,7 @@ class Estimator:
 
     def predict(self) -> gtsam.NavState:
         """Current state: the newest keyframe propagated with the IMU since."""
+        self.finish_keyframe()
         T, v, b = self.latest()
         return self.pim.predict(gtsam.NavState(T, v), b)
 
@@ -294,10 +298,22 @@ class Estimator:
         except RuntimeError as exc:
             recovery.recover(self, exc, k0, k1, pred, b0, t_ns)
             recovered = True
-        n_removed = self._after_update(k0, k1, t_ns, leaving, recovered, div0, held, features, f_imu)
-        self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
+        self._after = (k0, k1, t_ns, leaving, recovered, div0, held, features, f_imu)
+        n_removed = 0 if self.cfg.solver.bookkeeping == "next_frame" else self.finish_keyframe()
         T, vel, bias = self.latest()
         return KeyframeResult(k1, t_ns, T, vel, bias, self.lm.n_active(), n_removed, recovered)
+
+    def finish_keyframe(self) -> int:
+        """The last keyframe's bookkeeping (:meth:`_after_update`), then a fresh
+        preintegration at its bias, if it is still to run (``SolverConfig.bookkeeping``:
+        ``add_imu``, ``predict`` and ``flush_outliers`` call this first). Returns the
+        landmarks its outlier check rejected."""
+        if self._after is None:
+            return 0
+        after, self._after = self._after, None
+        n_removed = self._after_update(*after)
+        self.pim = gtsam.PreintegratedCombinedMeasurements(self.params, self.latest()[2])
+        return n_removed
 
     def _after_update(self, k0: int, k1: int, t_ns: int, leaving: list[int], recovered: bool,
                       div0: int, held: bool, features: FeatureFrame, f_imu) -> int:
@@ -345,6 +361,7 @@ class Estimator:
 
     def flush_outliers(self) -> None:
         """Run the outlier update the last keyframe held (``vio.backend.outlier_carry``)."""
+        self.finish_keyframe()
         held = self.carry.take(self.smoother) if self.smoother is not None else None
         try:
             if held is not None:
