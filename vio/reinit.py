@@ -45,7 +45,7 @@ from vio.backend.init import InitialState
 log = logging.getLogger(__name__)
 
 COUNTERS = ("divergences", "recoveries", "qr_resolves", "point_holds", "bridged", "realigned", "td_reanchors",
-            "t_start")
+            "reiterations", "t_start")
 
 
 def moved_to(state: InitialState, T_ref: gtsam.Pose3) -> InitialState:

@@ -47,6 +47,8 @@ class RunResult:
     """Re-initializations after a divergence restart (``vio.reinit``)."""
     realigns: int = 0
     """Gravity re-alignments after a long IMU gap (``vio.backend.realign``)."""
+    reiterations: int = 0
+    """Keyframe updates iterated again after an overshoot (``SolverConfig.reiterate_chi2``)."""
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
     imu_dropped: int = 0
@@ -298,6 +300,7 @@ def _counters(res: RunResult, pipe, live: bool) -> None:
     res.restarts = pipe.est.divergences
     res.reinits = pipe.reinit.count
     res.realigns = pipe.est.realigned
+    res.reiterations = pipe.est.reiterations
     res.qr_resolves = pipe.est.qr_resolves
     res.point_holds = pipe.est.point_holds
     res.imu_gaps = len(pipe.imu_gaps)
@@ -339,7 +342,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
              + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
                 if res.frames_dropped else "")
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
-             + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")]
+             + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
+             + (f", {res.reiterations} update(s) iterated again" if res.reiterations else "")]
     if res.init is None:
         lines.append("initialization  " + (f"not reached ({res.init_wait or 'no attempt'})" if not res.outputs else
                                            "in the live backend process (not reported)"))

@@ -250,7 +250,10 @@ class SolverConfig:
     re-alignment, td re-anchoring: ``Estimator._after_update``) runs at once
     (``"keyframe"``) or when the next frame arrives (``"next_frame"``), before anything
     else of that frame: the same operations in the same order; the keyframe's own output
-    is the update's estimate, and a restart the monitor decides shows one frame later."""
+    is the update's estimate, and a restart the monitor decides shows one frame later.
+    ``reiterate_chi2``: when the newest IMU factor's whitened squared error (15 dof) after
+    a keyframe's update exceeds it, ``reiterate_max`` more iSAM2 iterations run before
+    the outlier check (``vio.backend.recovery.reiterate``; 0: never)."""
 
     lag_s: float = 2.5
     relinearize_threshold: float = 0.01
@@ -264,6 +267,8 @@ class SolverConfig:
     incremental_padding: bool = True
     outlier_update: Literal["now", "next_frame"] = "now"
     bookkeeping: Literal["keyframe", "next_frame"] = "keyframe"
+    reiterate_chi2: float = 100.0
+    reiterate_max: int = 4
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("lag_s", "relinearize_threshold", "relinearize_skip", "td_relinearize_threshold",

@@ -103,6 +103,7 @@ class Estimator:
         self.realigned = 0        # gravity re-alignments after a gap (vio.backend.realign)
         self.divergences = 0      # soft restarts after a divergence
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
+        self.reiterations = 0     # updates iterated again (SolverConfig.reiterate_chi2)
         self._td_anchor = 0.0     # the td its keyframe time held at the last (re)start (s)
         self.t_start: int | None = None
         self.sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
@@ -326,6 +327,8 @@ class Estimator:
             self.still_kf.discard(k)
             self.bridged_kf.discard(k)
             self.rates.drop(k)
+        if not (recovered or held or self.bridged_kf):   # an overshooting Gauss-Newton step
+            recovered = recovery.reiterate(self, t_ns, f_imu)   # (SolverConfig.reiterate_chi2)
         n_removed = 0 if recovered else self._remove_outliers()
         if not recovered and self.k == k1:
             recovery.check_health(self, t_ns, n_removed, f_imu)
