@@ -318,9 +318,10 @@ class Estimator:
 
     def _after_update(self, k0: int, k1: int, t_ns: int, leaving: list[int], recovered: bool,
                       div0: int, held: bool, features: FeatureFrame, f_imu) -> int:
-        """A keyframe's bookkeeping after its update: the leaving keyframes forgotten, the
-        outlier check, the health check, the scale refinement, the gravity re-alignment and
-        td re-anchoring (each skipped once a recovery or restart replaced the window).
+        """A keyframe's bookkeeping after its update: the leaving keyframes forgotten, more
+        iterations after an overshooting update, the outlier check, the health check, the
+        scale refinement, the gravity re-alignment and td re-anchoring (each skipped once a
+        recovery or restart replaced the window).
         Returns the number of landmarks the outlier check rejected."""
         for k in leaving:
             self.kf_t.pop(k, None)
