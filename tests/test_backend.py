@@ -186,8 +186,10 @@ def test_rejected_track_restarts_under_its_id(sim_tracks_exact, max_rejections, 
 def test_bookkeeping_at_the_next_frame_changes_no_estimate(sim_tracks_exact):
     """``SolverConfig.bookkeeping = "next_frame"``: a keyframe returns right after its
     update, its outlier check and monitor wait for the next frame, which runs them before
-    anything else; with the outlier update held too, every output is the same bits as
-    with the bookkeeping at the keyframe, and the landmarks rejected are the same."""
+    anything else; with the outlier update held too, every output is the same as with the
+    bookkeeping at the keyframe (to rounding: ``vio run`` pins BLAS to one thread and its
+    outputs are the same bits, this process may not), and the landmarks rejected are the
+    same."""
     import dataclasses
     from vio.pipeline import Pipeline
     from vio.sync import packets
@@ -212,6 +214,6 @@ def test_bookkeeping_at_the_next_frame_changes_no_estimate(sim_tracks_exact):
     assert len(a) == len(b) > 100
     for x, y in zip(a, b):
         assert x.keyframe == y.keyframe
-        np.testing.assert_array_equal(x.T_w_b.matrix(), y.T_w_b.matrix())
-        np.testing.assert_array_equal(x.v_w, y.v_w)
+        np.testing.assert_allclose(x.T_w_b.matrix(), y.T_w_b.matrix(), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(x.v_w, y.v_w, rtol=0, atol=1e-9)
     assert sa == sb == 1, "the displaced track was rejected once either way"
