@@ -62,7 +62,6 @@ class EliminatedLandmarks(LandmarkManager):
         super().__init__(est)
         self.groups: dict[int, tuple[list[Track], landmark_schur.Bundle, list[int]]] = {}
         self._pending_groups: list[tuple[int, int]] = []
-        self._refreshed = False
         _warm_up()
 
     # ------------------------------------------------------------ bookkeeping
@@ -181,15 +180,11 @@ class EliminatedLandmarks(LandmarkManager):
         # ~0.7 ms of ~13 factors a real MH_01 stereo keyframe rebuilds
         self._refresh([e for entries in finals for e in entries]
                       + [(tr, tr.frames()) for _, members in rebuilds for tr in members], k, pred)
-        self._refreshed = True
-        try:
-            for entries in finals:
-                self._final_factor(entries, k, pred, g)
-            for a, members in rebuilds:
-                removals += old.get(a, [])
-                self._rebuild(a, members, k, pred, g)
-        finally:
-            self._refreshed = False
+        for entries in finals:
+            self._final_factor(entries, k, pred, g)
+        for a, members in rebuilds:
+            removals += old.get(a, [])
+            self._rebuild(a, members, k, pred, g)
         return sorted(set(removals))
 
     def _final_factor(self, entries: list, k: int, pred: gtsam.NavState,
@@ -268,7 +263,7 @@ class EliminatedLandmarks(LandmarkManager):
         C, ad_inv = (self._rig.C, self._rig.ad_inv) if self._rig is not None else (_EYE4, _EYE6)
         frames = sorted({f for _, fr in entries for f in fr})
         pos = {f: i for i, f in enumerate(frames)}
-        lms = self._landmarks(entries, k, pred, pos)
+        lms = self._landmarks(entries, pos)
         bundle = landmark_schur.pack(len(frames), lms, C, ad_inv, vc.model, est.sigma, robust,
                                      td_key is not None, (1.0 / vc.max_depth_m, 1.0 / vc.min_depth_m),
                                      vc.depth_iters)
@@ -291,14 +286,12 @@ class EliminatedLandmarks(LandmarkManager):
             tr.entry = (tuple(fr), dict(target=r.target, right=r.right, uv=r.uv, vel=r.vel, off=r.offset,
                                         basis=r.basis, a_uv=r.a_uv, a_vel=r.a_vel, a_off=r.a_off))
 
-    def _landmarks(self, entries: list[tuple[Track, list[int]]], k: int, pred: gtsam.NavState,
-                   pos: dict) -> list[dict]:
+    def _landmarks(self, entries: list[tuple[Track, list[int]]], pos: dict) -> list[dict]:
         """``landmark_schur.pack``'s entries of ``entries`` (track, frames with the anchor
-        first), their rows built in one pass (``vio.backend.track_arrays``). A track no
-        longer observed keeps the arrays of its last factor (td velocities and shifts
-        included, as the variable mode keeps a dead landmark's factor)."""
-        if not self._refreshed:   # prepare_update refreshed them all at once
-            self._refresh(entries, k, pred)
+        first) from their ``Track.entry`` arrays, which :meth:`prepare_update` refreshed
+        (:meth:`_refresh`) before building any factor. A track no longer observed keeps the
+        arrays of its last factor (td velocities and shifts included, as the variable mode
+        keeps a dead landmark's factor)."""
         return [{**tr.entry[1], "lam": tr.lam, "p_lam": tr.lam_prior[0] if tr.lam_prior else 0.0,
                  "p_info": tr.lam_prior[1] if tr.lam_prior else 0.0, "bodies": [pos[f] for f in fr]}
                 for tr, fr in entries]
