@@ -1,4 +1,5 @@
-"""Photometric points as a ``FactorSource`` of the estimator (``Estimator.sources``).
+"""Photometric points as a ``FactorSource`` (``vio.backend.keyframe_api``) of the estimator
+(``Estimator.sources``).
 
 One factor per host keyframe (``factors.photometric_host``): the host's points, their
 inverse depths eliminated inside the factor (refined at each linearization, Schur
