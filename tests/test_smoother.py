@@ -332,3 +332,38 @@ def test_refusal_at_a_world_point_holds_that_point_and_keeps_cholesky():
     assert abs(dc[0] - dq[0]) < 1e-4
     assert dc[1] == pytest.approx((dq[1] + 0.2 * lin[1]) / 1.2, abs=1e-3)
     assert abs(dc[2] - lin[2]) < 1e-3 and abs(dq[2] - lin[2]) > 0.5
+
+
+def _recording_factor(key: int, points: list) -> gtsam.CustomFactor:
+    """A 2-vector identity factor towards 0 that records where it is linearized."""
+    def fn(this, values, H):
+        if H is not None:
+            points.append(np.array(values.atVector(key)))
+            H[0] = np.eye(2)
+        return values.atVector(key)
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(2, 1.0), [key], fn)
+
+
+@pytest.mark.parametrize("own, relinearized", [(None, True), ({"a": (0.05, 2.0)}, False)])
+def test_source_keys_relinearize_at_their_own_thresholds(own, relinearized):
+    """A factor source's key character with thresholds of its own (``key_thresholds``,
+    e.g. a photometric keyframe's [a, b] brightness, b in intensity units) is relinearized
+    only when it moves beyond them, not at the general 0.005; a wrong count is refused."""
+    from vio.backend.config import SolverConfig
+    A = gtsam.symbol_shorthand.A
+    s = SolverConfig(relinearize_threshold=0.005, relinearize_skip=1, lag_s=100.0)
+    sm = smoother.make(s, {"a": 2}, "QR", own)
+    points: list = []
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    g.add(_recording_factor(A(0), points))
+    v.insert(A(0), np.array([0.0, 0.5]))
+    sm.update(g, v, {A(0): 0.0})
+    for k in range(1, 4):   # priors at 0.8, 1.1, 1.4: the offset moves to their mean
+        g = gtsam.NonlinearFactorGraph()
+        g.add(_prior(A(0), [0.0, 0.5 + 0.3 * k], [1e-3, 1e-3]))
+        sm.update(g, gtsam.Values(), {A(0): float(k)})
+    assert sm.calculateEstimate().atVector(A(0))[1] == pytest.approx(1.1, abs=0.01)
+    moved = max(abs(p[1] - 0.5) for p in points)
+    assert (moved > 0.2) == relinearized
+    with pytest.raises(ValueError, match="relinearization thresholds of key 'a'"):
+        smoother.make(s, {"a": 2}, "QR", {"a": (0.05,)})

@@ -22,7 +22,11 @@ MODE_DEFAULTS: dict[str, dict] = {
 # at every update measured the same ATE (real MH_01 5.1 mm, from frame 100 5.3 / 5.4 mm,
 # renders seed 3/14/21 2.5/6.2/8.4 mm) for 10-18% more CPU; hybrid: real MH_01 5.9 -> 5.8
 # mm, renders 7.2/2.7 -> 7.1/2.7 mm. Every update at 0.05: real MH_01 direct 5.2 / 5.2 mm
-# at 11.7 -> 22.9 ms a frame, hybrid 5.0 / 4.9 mm at 18.5 -> 30.8 ms
+# at 11.7 -> 22.9 ms a frame, hybrid 5.0 / 4.9 mm at 18.5 -> 30.8 ms. (Those figures predate
+# the keyframes' [a, b] brightness keys' own thresholds, direct.points.affine_relinearize: at
+# 0.005 the offsets b crossed at nearly every check, and every 10th update relinearized all
+# host factors of the window, the direct keyframes' 150-310 ms; now every update costs
+# about what every 10th did: real MH_01 direct 460 against 461 host linearizations.)
 _PHOTOMETRIC_SOLVER = {"relinearize_threshold": 0.005, "relinearize_skip": 10}
 MODE_DEFAULTS["hybrid"]["backend"]["solver"] = dict(_PHOTOMETRIC_SOLVER)
 # stereo and hybrid: landmark inverse depths eliminated inside per-anchor factors

@@ -93,7 +93,8 @@ class Estimator:
     # ------------------------------------------------------------------ setup
     def _new_smoother(self, factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
         extra = {ch: d for src in self.sources for ch, d in src.key_dims.items()}
-        return smoother.make(self.cfg.solver, extra, factorization)
+        own = {ch: th for src in self.sources for ch, th in src.key_thresholds.items()}
+        return smoother.make(self.cfg.solver, extra, factorization, own)
 
     @property
     def home_factorization(self) -> str:

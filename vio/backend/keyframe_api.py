@@ -36,9 +36,12 @@ class FactorSource(Protocol):
     ``g.size()`` of its own when adding them); ``remap_factor_indices`` maps them to new
     slots after a smoother rebuild (``vio.backend.smoother``). ``reset`` forgets all graph state after
     a solver restart. ``key_dims`` maps the key characters it uses to their dimensions
-    (for the relinearization thresholds)."""
+    (for the relinearization thresholds), ``key_thresholds`` those of its characters
+    that have relinearization thresholds of their own (one per tangent dimension, in the
+    variable's units; the others take ``SolverConfig.relinearize_threshold``)."""
 
     key_dims: dict[str, int]
+    key_thresholds: dict[str, tuple[float, ...]]
 
     def observe(self, k: int, frame: Any) -> None: ...
 

@@ -100,26 +100,37 @@ def _fixing_factors(old: gtsam.IncrementalFixedLagSmoother, lin: gtsam.Values, s
 
 
 def _threshold_map(general: float, td: float, extra: dict[str, int] | None = None,
-                   point: float | None = None) -> gtsam.ISAM2ThresholdMap:
+                   point: float | None = None,
+                   own: dict[str, tuple[float, ...]] | None = None) -> gtsam.ISAM2ThresholdMap:
     """Per-variable-type relinearization thresholds: td (seconds) moves by ~1e-4 per
     step and would never cross the general threshold; world points (m) at ``point``
-    (None: the general one)."""
+    (None: the general one); ``own``: key character -> one threshold per tangent
+    dimension, in the variable's own units (a factor source's, ``FactorSource.key_thresholds``)."""
     m = gtsam.ISAM2ThresholdMap()
     dims = {"x": 6, "v": 3, "b": 6, "e": 6, "l": 1, "p": 3, "z": 1, FIX_CHR: 1, **(extra or {})}
+    own = own or {}
     for ch, dim in dims.items():
-        m.insert((ch, np.full(dim, point if ch == "p" and point is not None else general)))
+        th = np.full(dim, point if ch == "p" and point is not None else general)
+        if ch in own:
+            th = np.asarray(own[ch], dtype=float)
+            if th.shape != (dim,):
+                raise ValueError(f"relinearization thresholds of key '{ch}': {th.shape[0] if th.ndim else 1} "
+                                 f"values for a {dim}-dimensional variable")
+        m.insert((ch, th))
     m.insert(("d", np.array([td])))
     return m
 
 
 def make(s: SolverConfig, extra_dims: dict[str, int] | None = None,
-         factorization: str | None = None) -> gtsam.IncrementalFixedLagSmoother:
+         factorization: str | None = None,
+         thresholds: dict[str, tuple[float, ...]] | None = None) -> gtsam.IncrementalFixedLagSmoother:
     """A fresh smoother as ``s`` says (``factorization`` overrides it); ``extra_dims``:
-    key character -> dimension of the factor sources' variables (relinearization thresholds)."""
+    key character -> dimension of the factor sources' variables, ``thresholds``: their own
+    relinearization thresholds where they have them (else the general one)."""
     p = gtsam.ISAM2Params()
     p.setFactorization(factorization or s.factorization)
     p.setRelinearizeThreshold(_threshold_map(s.relinearize_threshold, s.td_relinearize_threshold, extra_dims,
-                                            s.point_relinearize_threshold))
+                                            s.point_relinearize_threshold, thresholds))
     p.relinearizeSkip = s.relinearize_skip
     p.findUnusedFactorSlots = True   # reuse removed factor slots: flat memory on long runs
     # iSAM2 skips updating variables whose change is below the wildfire threshold

@@ -164,7 +164,13 @@ class PointsConfig:
     within a pixel or two, so a damped step keeps the keyframes in the basin; it
     vanishes at convergence since the gradient is left as is).
     ``affine_sigma`` (a, b) prior std of every keyframe's [a, b] around 0 (gauge and
-    weak regularization). ``use_track_guess``: TrackFrame's pose replaces the IMU
+    weak regularization). ``affine_relinearize`` (a, b): iSAM2's relinearization
+    thresholds of every keyframe's [a, b] (log exposure; intensity units). The residual
+    is linear in b and its Jacobians change with a move of a or b by that move relative
+    to 1 or to the patch intensity (``factors.photometric``), so 0.05 and 2 are about
+    the linearization error the poses' 0.005 rad allow; at the poses' 0.005 the offsets
+    b (a drift of ~0.3 per update along the affine gauge) relinearized every host factor
+    of the window at every relinearization check. ``use_track_guess``: TrackFrame's pose replaces the IMU
     prediction as the keyframe's initial guess when it is ``ok`` and within
     ``track_gate_m`` / ``track_gate_rad`` of the prediction. The backend settings these
     modes need (iSAM2 relinearization, direct mode's keyframe parallax) are mode
@@ -192,6 +198,7 @@ class PointsConfig:
     huber_k: float = 1.5
     stereo_weight: float = 1.0
     affine_sigma: tuple[float, float] = (1.0, 20.0)
+    affine_relinearize: tuple[float, float] = (0.05, 2.0)
     min_depth_m: float = 0.2
     max_depth_m: float = 30.0
     use_track_guess: bool = True
@@ -204,6 +211,8 @@ class PointsConfig:
             raise ValueError("PointsConfig: need max_points >= 1, max_targets >= 1, 0 <= min_visible <= 1")
         if len(self.affine_sigma) != 2 or min(self.affine_sigma) <= 0:
             raise ValueError("PointsConfig: affine_sigma needs two positive stds (a, b)")
+        if len(self.affine_relinearize) != 2 or min(self.affine_relinearize) <= 0:
+            raise ValueError("PointsConfig: affine_relinearize needs two positive thresholds (a, b)")
         if self.outlier_rms <= 0 or self.refine_iters < 0 or not 0 < self.min_depth_m < self.max_depth_m:
             raise ValueError("PointsConfig: need outlier_rms > 0, refine_iters >= 0, 0 < min_depth_m < max_depth_m")
 

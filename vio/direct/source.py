@@ -82,6 +82,7 @@ class PhotometricSource:
     def __init__(self, est, rig: StereoRig, cfg: DirectConfig) -> None:
         self.est, self.rig, self.cfg = est, rig, cfg
         pc = cfg.points
+        self.key_thresholds = {"a": tuple(pc.affine_relinearize)}
         self.params = HostParams(PhotometricParams(pc.sigma_I, pc.grad_c, pc.huber_k),
                                  pc.stereo_weight, pc.outlier_rms, pc.refine_iters,
                                  1.0 / pc.max_depth_m, 1.0 / pc.min_depth_m, pc.damping)
