@@ -141,6 +141,15 @@ MODE_DEFAULTS["stereo"]["backend"]["calib"] = {"estimate_extrinsic": True, "extr
 # keyframes at 40 px of parallax (projected points follow rotation, see vio.direct.mode)
 MODE_DEFAULTS["direct"] = {"backend": {"calib": {"estimate_td": False}, "solver": dict(_PHOTOMETRIC_SOLVER),
                                        "keyframe": {"min_parallax_px": 40.0}}}
+# direct: a host's points are observed in its next 4 keyframes instead of 5 (each keyframe
+# rebuilds every open host's factor with one target more: 461 -> 372 host linearizations on
+# real MH_01). Mean ATE over 7 stretches (starts 0, 30, ..., 180), targets 3 / 4 / 5: 5.72 /
+# 5.49 / 5.51 mm; renders seeds 11 / 12 / 14, cv81, lp82, 91 (exposure steps), 92 (smooth
+# exposure) 6.4 / 68.8 / 6.3 / 5.5 / 6.9 / 5.5 / 1.8 -> 6.6 / 67.5 / 6.0 / 5.5 / 7.0 / 5.2 /
+# 1.8 mm. Three alternated rounds (frame_times.py, Xeon VM): keyframe mean 57.6 / 55.7 / 51.1
+# -> 44.9 / 44.2 / 49.2 ms, max 97 / 90 / 91 -> 80 / 80 / 73 ms. Hybrid keeps 5 (4: real
+# MH_01 5.01 -> 5.05 mm, the same renders worse on 5 of 7)
+MODE_DEFAULTS["direct"]["direct"] = {"points": {"max_targets": 4}}
 # mono: the IMU biases walk at 8x the datasheet instead of 15x (vio.imu.ImuNoiseConfig). A mono
 # estimate's scale rests on the accelerometer alone, and the looser walk let its bias absorb
 # scale: real MH_05 mono (real IMU) from 17 starts (bench_stretches.py --starts 0,10,...,160)
