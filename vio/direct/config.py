@@ -182,7 +182,8 @@ class PointsConfig:
     the sync layer's td feedback (``CalibConfig``) runs in these modes. Without it the
     photometric term takes each image as taken at its keyframe's time and holds td at the
     sync layer's value. It needs iSAM2 to relinearize at every update
-    (``backend.solver.relinearize_skip: 1``, ~40 % more CPU in hybrid):
+    (``backend.solver.relinearize_skip: 1``; hybrid's backend time per frame
+    +3 % on real MH_01 since ``affine_relinearize``, ~40 % before):
     ``examples/photometric_td.yaml`` has the setting and benchmarks/README.md (td in the
     photometric modes) the figures.
     """
