@@ -170,8 +170,8 @@ class PointsConfig:
     to 1 or to the patch intensity (``factors.photometric``), so 0.05 and 2 are about
     the linearization error the poses' 0.005 rad allow; at the poses' 0.005 the offsets
     b (a drift of ~0.3 per update along the affine gauge) relinearized every host factor
-    of the window at every relinearization check. ``use_track_guess``: TrackFrame's pose replaces the IMU
-    prediction as the keyframe's initial guess when it is ``ok`` and within
+    of the window at every relinearization check. ``use_track_guess``: TrackFrame's pose
+    replaces the IMU prediction as the keyframe's initial guess when it is ``ok`` and within
     ``track_gate_m`` / ``track_gate_rad`` of the prediction. The backend settings these
     modes need (iSAM2 relinearization, direct mode's keyframe parallax) are mode
     defaults in ``vio.modes.MODE_DEFAULTS``, so a YAML file overrides them.
