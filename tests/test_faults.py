@@ -204,6 +204,39 @@ def test_health_monitor_flags_each_divergence_and_only_those():
     m = _monitor()
     reasons = [_check(m, k * 1e8, np.zeros(3), b0, 4, 12) for k in range(5)]
     assert reasons[:4] == [None] * 4 and "inlier ratio" in reasons[4]
+    lost = "photometric points lost: ..."   # a factor source's reason (FactorSource.lost)
+    m = _monitor()
+    assert m.check(0, gtsam.Pose3(), np.zeros(3), b0, _still_pim(0.1), 30, 0, 1.0, (), lost) == lost
+
+
+def test_photometric_source_lost_needs_five_keyframes_without_pairs():
+    """``PhotometricSource.lost``: fewer than 10 % of max_points (point, keyframe) pairs in
+    use at five keyframes in a row that had another host; a keyframe with pairs again, or
+    one whose window has no other host, does not count; a restart forgets the count."""
+    from types import SimpleNamespace
+    from vio.direct.config import DirectConfig
+    from vio.direct.source import PhotometricSource
+    src = PhotometricSource.__new__(PhotometricSource)
+    src.cfg, src._coverage = DirectConfig(), []
+    n = src.cfg.points.max_points
+
+    def host(k, targets, used):
+        tmask = np.zeros((n, 5), bool)
+        tmask[:used, len(targets) - 1] = True
+        return SimpleNamespace(k=k, targets=targets, pts=SimpleNamespace(alive=np.ones(n, bool), tmask=tmask))
+
+    def window(k, used):   # keyframe k observed by host k - 1 with ``used`` pairs; k hosts too
+        src.hosts = {k - 1: host(k - 1, [k], used), k: host(k, [k + 1], 0)}
+        return src.lost(k)
+
+    assert [window(k, 3) for k in range(1, 5)] == [None] * 4
+    assert window(5, 14).startswith("photometric points lost")
+    assert window(6, 15) is None                        # 15 pairs: 10 % of 150
+    assert [window(k, 0) for k in range(7, 11)] == [None] * 4
+    src.hosts = {11: host(11, [12], 0)}                 # no other host: no evidence either way
+    assert src.lost(11) is None and window(12, 0) is not None
+    src._coverage = []                                  # what reset() does
+    assert window(13, 0) is None
 
 
 def test_health_fallback_propagates_the_healthy_state_a_lookback_old_and_cooldown_holds():

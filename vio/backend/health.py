@@ -12,6 +12,10 @@ state is plausible. A state is divergent when
   over the last ``inlier_keyframes`` keyframes) falls below ``min_inlier_ratio`` with at
   least ``min_landmarks`` landmarks in that sum (a single keyframe often loses half its
   landmarks on real data: 0.18 on MH_05 mono, while five in a row keep over 0.7);
+- a factor source reports that its measurements lost the frames (``FactorSource.lost``:
+  the photometric points of ``vio.direct`` once hardly any (point, keyframe) pair is in
+  use at five keyframes in a row, DSO's tracking lost; direct mode has no landmarks for
+  the inlier ratio);
 - the newest IMU factor's whitened squared error exceeds ``max_imu_chi2`` (15 degrees
   of freedom: the IMU and the rest of the window disagree wildly).
 
@@ -178,16 +182,19 @@ class HealthMonitor:
         self._pims.clear()
 
     def check(self, t_ns: int, T_w_b: gtsam.Pose3, v_w: np.ndarray, bias: gtsam.imuBias.ConstantBias,
-              pim, n_landmarks: int, n_removed: int, imu_chi2: float, calib: tuple = ()) -> str | None:
+              pim, n_landmarks: int, n_removed: int, imu_chi2: float, calib: tuple = (),
+              lost: str | None = None) -> str | None:
         """The reason the keyframe state at ``t_ns`` is divergent, or None (then it is
         recorded as healthy). ``pim``: the preintegrated IMU of the interval ending there;
-        ``calib``: the estimator's calibration then (returned by :meth:`fallback`)."""
+        ``calib``: the estimator's calibration then (returned by :meth:`fallback`);
+        ``lost``: a factor source's reason its measurements lost the frames
+        (``FactorSource.lost``), a divergence after the feature inlier ratio's test."""
         c = self.cfg
         if not c.enabled:
             return None
         self._pims.append((t_ns, pim))
         reason = self._reason(t_ns, np.asarray(v_w, float), bias.vector(), n_landmarks, n_removed,
-                              imu_chi2)
+                              imu_chi2, lost)
         if self._quiet > 0:
             self._quiet -= 1
             reason = None if reason is None or not reason.startswith("non-finite") else reason
@@ -200,7 +207,7 @@ class HealthMonitor:
         return reason
 
     def _reason(self, t_ns: int, v: np.ndarray, b: np.ndarray, n_lm: int, n_rm: int,
-                chi2: float) -> str | None:
+                chi2: float, lost: str | None = None) -> str | None:
         c = self.cfg
         if not (np.all(np.isfinite(v)) and np.all(np.isfinite(b)) and np.isfinite(chi2)):
             return "non-finite state"
@@ -227,6 +234,8 @@ class HealthMonitor:
         if full and ratio < c.min_inlier_ratio:
             return (f"feature inlier ratio {ratio:.2f} < {c.min_inlier_ratio:g} over "
                     f"{c.inlier_keyframes} keyframes")
+        if lost is not None:
+            return lost
         if chi2 > c.max_imu_chi2:
             return f"IMU factor error {chi2:.3g} > {c.max_imu_chi2:g}"
         return None

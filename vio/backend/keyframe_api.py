@@ -38,7 +38,9 @@ class FactorSource(Protocol):
     a solver restart. ``key_dims`` maps the key characters it uses to their dimensions
     (for the relinearization thresholds), ``key_thresholds`` those of its characters
     that have relinearization thresholds of their own (one per tangent dimension, in the
-    variable's units; the others take ``SolverConfig.relinearize_threshold``)."""
+    variable's units; the others take ``SolverConfig.relinearize_threshold``). ``lost``
+    (after keyframe ``k``'s update) names why the source's measurements have lost the
+    frames, or returns None: a divergence for the health monitor."""
 
     key_dims: dict[str, int]
     key_thresholds: dict[str, tuple[float, ...]]
@@ -53,3 +55,5 @@ class FactorSource(Protocol):
     def remap_factor_indices(self, remap: dict[int, int]) -> None: ...
 
     def reset(self) -> None: ...
+
+    def lost(self, k: int) -> str | None: ...

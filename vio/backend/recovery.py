@@ -63,7 +63,8 @@ def check_health(est, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor)
     chi2 = 2.0 * f_imu.error(est.values) if est.values.exists(X(est.k - 1)) else 0.0
     T_b_c = est.values.atPose3(graph.EXTRINSIC)
     td = float(est.values.atVector(graph.TD)[0])
-    reason = est.health.check(t_ns, T, v, b, est.pim, est.lm.n_active(), n_removed, chi2, (T_b_c, td))
+    lost = next((r for r in (src.lost(est.k) for src in est.sources) if r is not None), None)
+    reason = est.health.check(t_ns, T, v, b, est.pim, est.lm.n_active(), n_removed, chi2, (T_b_c, td), lost)
     if reason is None:
         return
     est.divergences += 1

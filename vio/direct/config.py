@@ -200,6 +200,14 @@ class PointsConfig:
     stereo_weight: float = 1.0
     affine_sigma: tuple[float, float] = (1.0, 20.0)
     affine_relinearize: tuple[float, float] = (0.05, 2.0)
+    # the frames are lost (PhotometricSource.lost, a divergence: vio.backend.health) when
+    # fewer than lost_fraction * max_points (point, keyframe) pairs are in use at each of
+    # lost_keyframes keyframes in a row (0: never). Real MH_01, 8 renders and the static
+    # V1_01 pairs never had fewer than 252 (direct) / 144 (hybrid); a window linearized
+    # pixels away (IMU predictions as the keyframes' initial poses) had 0 at most keyframes
+    # and ran off at up to 29 m/s unnoticed (benchmarks/README.md, stop 55)
+    lost_fraction: float = 0.1
+    lost_keyframes: int = 5
     min_depth_m: float = 0.2
     max_depth_m: float = 30.0
     use_track_guess: bool = True
@@ -212,6 +220,8 @@ class PointsConfig:
             raise ValueError("PointsConfig: need max_points >= 1, max_targets >= 1, 0 <= min_visible <= 1")
         if len(self.affine_sigma) != 2 or min(self.affine_sigma) <= 0:
             raise ValueError("PointsConfig: affine_sigma needs two positive stds (a, b)")
+        if not 0.0 <= self.lost_fraction <= 1.0 or self.lost_keyframes < 0:
+            raise ValueError("PointsConfig: need 0 <= lost_fraction <= 1 and lost_keyframes >= 0")
         if len(self.affine_relinearize) != 2 or min(self.affine_relinearize) <= 0:
             raise ValueError("PointsConfig: affine_relinearize needs two positive thresholds (a, b)")
         if self.outlier_rms <= 0 or self.refine_iters < 0 or not 0 < self.min_depth_m < self.max_depth_m:

@@ -95,6 +95,7 @@ class PhotometricSource:
         self._pending: list[tuple[Host, int]] = []
         self._unhosted: list[KeyframeData] = []   # in the graph, Host not yet made (_host_pending)
         self.last_stats: dict = {}
+        self._coverage: list[int] = []   # pairs in use at the last keyframes (``lost``)
         a, b = pc.affine_sigma
         self._ab_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, b]))
 
@@ -183,9 +184,28 @@ class PhotometricSource:
         for host in self.hosts.values():
             host.factor_index = remap.get(host.factor_index)
 
+    def lost(self, k: int) -> str | None:
+        """Why the photometric points have lost the frames, or None: fewer than
+        ``points.lost_fraction * points.max_points`` (point, keyframe) pairs in use for
+        keyframe ``k`` after its update (over the hosts observing it) at each of the last
+        ``points.lost_keyframes`` keyframes that had another host with points in the
+        window (DSO's tracking lost; a divergence for ``vio.backend.health``)."""
+        pc = self.cfg.points
+        if pc.lost_keyframes == 0 or not any(h.k != k and h.pts.alive.any() for h in self.hosts.values()):
+            return None
+        used = sum(int((h.pts.alive & h.pts.tmask[:, h.targets.index(k)]).sum())
+                   for h in self.hosts.values() if k in h.targets)
+        self._coverage = [*self._coverage, used][-pc.lost_keyframes:]
+        floor = pc.lost_fraction * pc.max_points
+        if len(self._coverage) < pc.lost_keyframes or max(self._coverage) >= floor:
+            return None
+        return (f"photometric points lost: fewer than {floor:.0f} (point, keyframe) pairs in use "
+                f"at the last {pc.lost_keyframes} keyframes")
+
     def reset(self) -> None:
         """After a solver restart: forget hosts and keys; the restart keyframe's images
         are kept and its keys inserted at the next keyframe."""
+        self._coverage = []
         self.hosts = {}
         self.twists = {}
         self._pending = []
