@@ -304,6 +304,18 @@ def test_trackframe_diverged_affine_start_is_a_failure_not_an_exception(tracking
     assert not out.ok
 
 
+def test_trackframe_without_points_is_a_quiet_failure(tracking_scene):
+    """A keyframe with no points (darkness, no texture: 1 s of black frames in a real MH_01
+    copy) is a flagged failure with no NumPy warning on the way (the mean of an empty mask)."""
+    import warnings
+    kf, new, *_ = tracking_scene
+    ref = make_reference(kf, np.zeros((0, 2)), np.zeros(0), KS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = track_frame(ref, new)
+    assert not out.ok and out.rmse == float("inf")
+
+
 def test_direct_config_strict_yaml():
     cfg = from_dict(DirectConfig, {"track": {"levels": 3, "iters": [5, 5, 5]},
                                    "epipolar": {"zero_mean": False}})

@@ -172,7 +172,9 @@ def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg:
         evaluate(x)
         n = valid.sum(1)
         per = np.sqrt((r_raw ** 2).sum(1) / np.maximum(n, 1))[n > 0]
-        return (float(np.median(per)) if per.size else float("inf")), float(valid.mean())
+        if not per.size:     # no point inside (a keyframe without points: darkness, no texture)
+            return float("inf"), float(valid.mean()) if valid.size else 0.0
+        return float(np.median(per)), float(valid.mean())
 
     return fun, rmse
 
