@@ -12,10 +12,11 @@ state is plausible. A state is divergent when
   over the last ``inlier_keyframes`` keyframes) falls below ``min_inlier_ratio`` with at
   least ``min_landmarks`` landmarks in that sum (a single keyframe often loses half its
   landmarks on real data: 0.18 on MH_05 mono, while five in a row keep over 0.7);
-- a factor source reports that its measurements lost the frames (``FactorSource.lost``:
-  the photometric points of ``vio.direct`` once hardly any (point, keyframe) pair is in
-  use at five keyframes in a row, DSO's tracking lost; direct mode has no landmarks for
-  the inlier ratio);
+- with no landmark in the window, a factor source reports that its measurements lost
+  the frames (``FactorSource.lost``: the photometric points of ``vio.direct`` once hardly
+  any (point, keyframe) pair is in use at five keyframes in a row, DSO's tracking lost;
+  direct mode has no landmarks for the inlier ratio, and in hybrid mode its KLT
+  landmarks still hold a window whose photometric points are lost);
 - the newest IMU factor's whitened squared error exceeds ``max_imu_chi2`` (15 degrees
   of freedom: the IMU and the rest of the window disagree wildly).
 

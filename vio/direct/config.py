@@ -200,7 +200,8 @@ class PointsConfig:
     stereo_weight: float = 1.0
     affine_sigma: tuple[float, float] = (1.0, 20.0)
     affine_relinearize: tuple[float, float] = (0.05, 2.0)
-    # the frames are lost (PhotometricSource.lost, a divergence: vio.backend.health) when
+    # the frames are lost (PhotometricSource.lost; a divergence, vio.backend.health, where no
+    # landmark is in the window: direct mode, not hybrid) when
     # fewer than lost_fraction * max_points (point, keyframe) pairs are in use at each of
     # lost_keyframes keyframes in a row (0: never). Real MH_01, 8 renders and the static
     # V1_01 pairs never had fewer than 252 (direct) / 144 (hybrid); a window linearized
