@@ -260,6 +260,7 @@ def vi_align(prob: AlignProblem, ic: InitConfig, outlier: float, sigma: float) -
         if best is None or cost < best[1]:
             best = (x, cost)
     x = np.r_[best[0], prob.bg0]
+    prev = None
     for rnd in range(4):   # until the inlier set is that of the solution (at most 4 rounds)
         prob.mask[:] = True
         _, _, r = prob.residuals(x, full=True)
