@@ -15,7 +15,7 @@ import numpy as np
 from cases_projection import random_pose
 from factors import track_kernel
 from factors.anchor_noise import AnchorWhitening
-from factors.landmark_schur import bundle_factor, linearize, pack, refine, set_whitening
+from factors.landmark_schur import bundle_factor, pack, refine, set_whitening
 from factors.bearing_model import tangent_basis
 from jacobian_case import ReducedCase
 

@@ -247,7 +247,6 @@ def test_stereo_initialization_starts_at_a_matched_frame(sim_stereo):
     """A stereo initialization window whose first frames the stage did not match in cam1
     (``stereo_at = "keyframe"`` after ``every_frame_s``) starts at the first keyframe: the
     first pose is that frame's, not an unmatched one's (which cannot give the structure)."""
-    import dataclasses
     from vio.io.euroc import image_files
     from vio.pipeline import Pipeline
     from vio.run import default_config

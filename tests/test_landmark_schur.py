@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cases_landmark_schur import E, D, X, full_problem, make_bundle
-from factors.landmark_schur import bundle_factor, linearize, pack, refine
+from factors.landmark_schur import bundle_factor, linearize, refine
 from factors.robust import RobustKernel
 
 

@@ -15,7 +15,7 @@ from factors.robust import RobustKernel
 from vio.backend import viba
 from vio.backend.regauge import Similarity
 from vio.backend.scale_refine import RefineConfig
-from vio.imu import ImuNoiseConfig, combined_params, integrate
+from vio.imu import ImuNoiseConfig, combined_params
 
 FX = 458.0
 T_B_C = gtsam.Pose3(gtsam.Rot3.Ypr(-np.pi / 2, 0.0, -np.pi / 2), np.array([-0.02, -0.06, 0.01]))
