@@ -331,8 +331,7 @@ class Estimator:
                 self.lm.arm(held[0])
                 self._update(held[0], gtsam.Values(), held[1], held[2])
         except RuntimeError as exc:
-            T, v, b = self.latest()
-            recovery.recover(self, exc, self.k, self.k, gtsam.NavState(T, v), b, self.kf_t[self.k])
+            recovery.recover_latest(self, exc, self.kf_t[self.k])
 
     # ----------------------------------------------------------------- outputs
     def extrinsic(self) -> gtsam.Pose3:

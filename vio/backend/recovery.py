@@ -55,6 +55,13 @@ def recover(est, exc: Exception, k0: int, k1: int, pred: gtsam.NavState,
         est._restart(k1, state, est.cam.T_b_c, est.td0, np.full(6, 0.1))
 
 
+def recover_latest(est, exc: Exception, t_ns: int) -> None:
+    """:func:`recover` at the newest keyframe from the smoother's latest state: a refused
+    update after the keyframe's own (the held outlier update, a re-iteration)."""
+    T, v, b = est.latest()
+    recover(est, exc, est.k, est.k, gtsam.NavState(T, v), b, t_ns)
+
+
 def check_health(est, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor) -> None:
     """Soft restart (``vio.backend.health``) when the newest state is divergent: the
     current position kept (no jump), attitude, velocity and bias from the last healthy
@@ -66,9 +73,9 @@ def check_health(est, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor)
     # a source's lost measurements (FactorSource.lost) are a divergence where they are the only
     # vision (direct mode): next to landmarks (hybrid) they are not. A right camera covered for
     # 2 s on real MH_01: hybrid 5.3 mm as is, 12.3 mm when its photometric loss restarted it
-    lost = None if est.lm.n_active() else next(
-        (r for r in (src.lost(est.k) for src in est.sources) if r is not None), None)
-    reason = est.health.check(t_ns, T, v, b, est.pim, est.lm.n_active(), n_removed, chi2, (T_b_c, td), lost)
+    n_lm = est.lm.n_active()
+    lost = None if n_lm else next((r for r in (src.lost(est.k) for src in est.sources) if r is not None), None)
+    reason = est.health.check(t_ns, T, v, b, est.pim, n_lm, n_removed, chi2, (T_b_c, td), lost)
     if reason is None:
         return
     est.divergences += 1
@@ -123,8 +130,7 @@ def reiterate(est, t_ns: int, f_imu: gtsam.NonlinearFactor) -> bool:
                 smoother.qr_resolve(est, gtsam.NonlinearFactorGraph(), exc)
                 est.values = est.smoother.calculateEstimate()
             except RuntimeError as exc2:
-                T, v, b = est.latest()
-                recover(est, exc2, est.k, est.k, gtsam.NavState(T, v), b, t_ns)
+                recover_latest(est, exc2, t_ns)
                 return True
             return False
         est.values = est.smoother.calculateEstimate()
