@@ -5,8 +5,9 @@ when the frames' exposure times are modelled (``HostTiming``), td (1) last; the
 N points of the host (``HostPoints``) carry their inverse depths rho (1/m, host cam0)
 inside the factor, not as graph variables. At each linearization the kernel
 (``factors.photometric_kernel.host_system``) refines every rho with the poses held
-(a few Gauss-Newton steps over the static stereo term at the host and the temporal
-terms), drops outlier residuals (DSO's residual states) and Schur-eliminates the rho:
+(a few Gauss-Newton steps over the static stereo term at the host, for the points
+flagged in ``HostPoints.stereo``, and the temporal terms), drops outlier residuals
+(DSO's residual states) and Schur-eliminates the rho:
 H = sum (H_xx - H_xr H_rx / H_rr), g likewise. The factor returns a square-root form of
 that quadratic: with H + eps I = L L^T (Cholesky; eps = 1e-9 max diag H),
 
@@ -67,6 +68,8 @@ class HostPoints:
     """Mutable state of one host's points: constants of the host patches, ``rho`` (N,)
     inverse depths (updated at each linearization), ``alive`` (N,) points in use and
     ``tmask`` (N, M_max) (point, target) pairs in use, target slot m = m-th target.
+    ``stereo`` (N,) the points that carry the static stereo term (default all; a point whose
+    depth came from a temporal search has none: its right-image match failed).
     Clipped host pixels (>= ``SATURATED`` or <= ``DARK``) are marked invalid at creation."""
 
     patch: HostPatch
@@ -74,15 +77,20 @@ class HostPoints:
     rho: np.ndarray
     alive: np.ndarray
     tmask: np.ndarray
+    stereo: np.ndarray
 
     @staticmethod
-    def create(patch: HostPatch, rho: np.ndarray, grad_c: float, max_targets: int) -> "HostPoints":
+    def create(patch: HostPatch, rho: np.ndarray, grad_c: float, max_targets: int,
+               stereo: np.ndarray | None = None) -> "HostPoints":
         c2 = grad_c ** 2
         n = len(patch)
         patch = HostPatch(patch.uv, patch.bearing, patch.intensity, patch.grad_sq,
                           patch.valid & (patch.intensity < SATURATED) & (patch.intensity > DARK))
+        sm = np.ones(n, bool) if stereo is None else np.array(stereo, bool).reshape(-1)
+        if sm.shape != (n,):
+            raise ValueError(f"HostPoints.create: stereo mask of {sm.size} for {n} points")
         return HostPoints(patch, c2 / (c2 + patch.grad_sq), np.asarray(rho, float).copy(),
-                          np.ones(n, bool), np.ones((n, max_targets), bool))
+                          np.ones(n, bool), np.ones((n, max_targets), bool), sm)
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,7 +158,8 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        # C-order, writable: the layout of R_ji[m], t_ji[m], so that the stereo and
                        # temporal terms share one compiled _rho_terms (first-run compile)
                        np.ascontiguousarray(T_rl.rotation().matrix()), np.array(T_rl.translation()),
-                       ab_r, w0 * params.stereo_weight, stereo is not None, hk,
+                       ab_r, w0 * params.stereo_weight,
+                       pts.stereo if stereo is not None else np.zeros(len(rho), np.bool_), hk,
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update)
 
 

@@ -1,10 +1,10 @@
 """Numba kernels of the per-host photometric factor (``factors.photometric_host``).
 
 One call linearizes all N points of one host keyframe observed in M target keyframes
-(and, optionally, in the host's right image): it refines every point's inverse depth
-rho by a few Gauss-Newton steps with the poses held, evaluates the Huber-weighted
-photometric residuals (same math and weights as ``factors.photometric``: DSO's
-8-pixel pattern, affine brightness [a, b] per keyframe, weight
+(and, for the points flagged in ``smask``, in the host's right image): it refines every
+point's inverse depth rho by a few Gauss-Newton steps with the poses held, evaluates the
+Huber-weighted photometric residuals (same math and weights as ``factors.photometric``:
+DSO's 8-pixel pattern, affine brightness [a, b] per keyframe, weight
 w = lambda c^2 / (c^2 + |grad I_host|^2) / (2 sigma_I^2), Huber on sqrt(w) r) and
 accumulates the normal equations over the frame variables with each point's rho
 eliminated (Schur complement, as DSO's energy functional and GTSAM's smart factors):
@@ -181,7 +181,7 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
 
 @_njit
 def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
-                st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, outlier_rms, iters,
+                st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k, outlier_rms, iters,
                 rho_min, rho_max):
     """Pass 1 of :func:`host_system`, one point at a time (a numba ``prange`` over the
     points cost 4x more per call on the shared 2-core machine of the measurements):
@@ -193,9 +193,9 @@ def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         if not alive[p]:
             continue
         rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
-                           w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters,
+                           w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask[p], huber_k, iters,
                            rho_min, rho_max)
-        if use_stereo:
+        if smask[p]:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
                                             t_rl, ab_r, st_w, huber_k)
             if nv < P // 2 or ss > outlier_rms * outlier_rms * nv:
@@ -284,10 +284,12 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
 
 @_njit
 def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
-                t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k,
+                t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k,
                 outlier_rms, iters, rho_min, rho_max, update):
     """Reduced normal equations of one host (module docstring).
 
+    ``smask`` (N,) bool: the points that carry the static stereo term (their depth came
+    from the stereo pair; the others' from a temporal search, ``vio.direct.temporal``).
     Returns (H (n, n), g (n,), cost, reduced cost, n points used); with ``update`` the
     refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``.
     """
@@ -303,7 +305,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     # pass 1: refined depths and stereo check; pass 2: residual rows and pattern RMS of
     # every (point, target)
     rp, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
-                           ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo,
+                           ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask,
                            huber_k, outlier_rms, iters, rho_min, rho_max)
     rows, valid, ms = _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji,
                                  R_jb, R_b_c, t_b_c, ab_h, ab_t, w0)
@@ -325,7 +327,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         Hrr = 0.0
         gr = 0.0
         cp = 0.0
-        if use_stereo:
+        if smask[p]:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
                                             t_rl, ab_r, st_w, huber_k)
             Hrr += a

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 
 from cases_photometric import H, W, K, analytic_image, random_pose
 from factors.image_ops import BilinearImage
@@ -37,8 +38,9 @@ def _scene(seed: int, n: int = 25, m: int = 2):
     return imgs, T_b_c, args, patch, rho, stereo
 
 
-def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp):
-    """Weighted (r, J) of every residual, columns [frames (8 (M + 1)), rho (N)]."""
+def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None):
+    """Weighted (r, J) of every residual, columns [frames (8 (M + 1)), rho (N)]; the
+    static stereo rows only for the points in ``smask`` (default all)."""
     M, N = (len(args) - 2) // 2, len(rho)
     n = 8 * (M + 1)
     rows, res = [], []
@@ -58,6 +60,8 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp):
     ev = stereo_eval(rho, stereo.ab, patch, imgs[-1], K, T_RL)
     sw = sqrt_weights(ev, patch, pp)
     for i in range(N):
+        if smask is not None and not smask[i]:
+            continue
         for k in range(patch.bearing.shape[1]):
             row = np.zeros(n + N)
             row[n + i] = ev.J["rho"][i, k, 0]
@@ -66,16 +70,20 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp):
     return np.array(res), np.array(rows), n
 
 
-def test_host_factor_is_the_schur_complement_of_the_pointwise_problem():
+@pytest.mark.parametrize("mixed", [False, True])
+def test_host_factor_is_the_schur_complement_of_the_pointwise_problem(mixed):
     """Without depth refinement, Huber or outliers, the kernel's reduced H and g equal
-    H_xx - H_xr H_rr^-1 H_rx and g_x - H_xr H_rr^-1 g_r of the point-wise problem."""
+    H_xx - H_xr H_rr^-1 H_rx and g_x - H_xr H_rr^-1 g_r of the point-wise problem; with
+    ``mixed``, a third of the points have no static stereo term (``HostPoints.stereo``:
+    depths from a temporal search)."""
     imgs, T_b_c, args, patch, rho, stereo = _scene(3)
     pp = PhotometricParams(4.0, 50.0, None)
     params = HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0)
-    pts = HostPoints.create(patch, rho, 50.0, 4)
+    smask = (np.arange(len(rho)) % 3 != 0) if mixed else None
+    pts = HostPoints.create(patch, rho, 50.0, 4, smask)
     Hk, gk, E, red, used = host_linearize(args, pts, [im._stack for im in imgs[1:-1]], K, T_b_c,
                                           params, stereo)
-    r, J, n = _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp)
+    r, J, n = _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask)
     Hf, gf = J.T @ J, J.T @ r
     Hxr, Hrr = Hf[:n, n:], Hf[n:, n:]
     Hs = Hf[:n, :n] - Hxr @ np.linalg.solve(Hrr, Hxr.T)
