@@ -215,8 +215,23 @@ class PointsConfig:
     track_gate_m: float = 0.05
     track_gate_rad: float = 0.05
     exposure_td: bool = False
+    # a host with fewer than max_points stereo-matched candidates is filled up with
+    # candidates whose depth an epipolar search in one of the last temporal_refs keyframes
+    # (the widest baseline) finds with a standard deviation of at most temporal_max_rel_std
+    # of the inverse depth and a search in each of the temporal_checks keyframes before it
+    # does not contradict beyond temporal_agree_k sigmas (vio.direct.temporal; those points
+    # carry no static stereo term)
+    temporal_depth: bool = True
+    temporal_refs: int = 1
+    temporal_max_rel_std: float = 0.25
+    temporal_checks: int = 1
+    temporal_agree_k: float = 3.0
 
     def __post_init__(self) -> None:
+        if (self.temporal_refs < 1 or self.temporal_max_rel_std <= 0 or self.temporal_checks < 0
+                or self.temporal_agree_k <= 0):
+            raise ValueError("PointsConfig: need temporal_refs >= 1, temporal_max_rel_std > 0, "
+                             "temporal_checks >= 0 and temporal_agree_k > 0")
         if self.max_points < 1 or self.max_targets < 1 or not 0 <= self.min_visible <= 1:
             raise ValueError("PointsConfig: need max_points >= 1, max_targets >= 1, 0 <= min_visible <= 1")
         if len(self.affine_sigma) != 2 or min(self.affine_sigma) <= 0:

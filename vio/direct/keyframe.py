@@ -9,6 +9,7 @@ Frames: ``uv`` are undistorted pinhole pixels of cam0 (pixel-centre convention);
 
 from __future__ import annotations
 
+import dataclasses
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,8 +68,10 @@ class KeyframePoints:
     """The candidate points of a keyframe (module docstring): ``uv`` (N, 2), ``idepth``
     (N,), ``idepth_var`` (N,), the right image's ``ab_right``, the number of selected
     pixels before the depth checks ``n_selected``, TrackFrame's reference of the
-    points (``ref``, its affine a placeholder; None when tracking is off) and the
-    undistorted right image ``right``."""
+    points (``ref``, its affine a placeholder; None when tracking is off), the
+    undistorted right image ``right``, the candidates the stereo search did not place,
+    ``uv_rest`` (K, 2), and how many of the points lead ``uv`` with stereo depths,
+    ``n_stereo`` (None: all; the rest were placed by ``vio.direct.temporal``)."""
 
     right: BilinearImage
     uv: np.ndarray
@@ -77,6 +80,8 @@ class KeyframePoints:
     ab_right: np.ndarray
     n_selected: int
     ref: TrackingReference | None = None
+    uv_rest: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    n_stereo: int | None = None
 
 
 @dataclass(eq=False)
@@ -110,6 +115,23 @@ class KeyframeData:
     idepth_var = property(lambda self: self.points.idepth_var)
     ab_right = property(lambda self: self.points.ab_right)
     n_selected = property(lambda self: self.points.n_selected)
+
+    @property
+    def n_stereo(self) -> int:
+        """How many of the points (the first ones) have stereo depths."""
+        n = self.points.n_stereo
+        return len(self.uv) if n is None else n
+
+    def add_points(self, uv: np.ndarray, idepth: np.ndarray, idepth_var: np.ndarray) -> None:
+        """Append the points placed after construction (``vio.direct.temporal``, once):
+        (K, 2) pixels, (K,) inverse depths and variances; no candidate is left unplaced.
+        TrackFrame's reference is rebuilt from all points at its next use."""
+        p = self.points
+        self._points = dataclasses.replace(
+            p, uv=np.concatenate([p.uv, uv]), idepth=np.concatenate([p.idepth, idepth]),
+            idepth_var=np.concatenate([p.idepth_var, idepth_var]), ref=None,
+            uv_rest=np.zeros((0, 2)), n_stereo=self.n_stereo)
+        self._ref = None
 
     def pyramid(self, levels: int) -> tuple[BilinearImage, ...]:
         """The left image's pyramid (``vio.direct.trackframe.image_pyramid``; level 0 is
@@ -199,4 +221,4 @@ def _points(pyr: tuple[BilinearImage, ...], right_raw: np.ndarray | str | Path, 
     ab_r = right_affine(L, R, sel.uv[ok], ep.uv_match[ok], offs)
     uv, idepth, var = sel.uv[ok], ep.idepth[ok], ep.variance[ok]
     ref = make_reference(pyr, uv, idepth, rig.K0, var, (0.0, 0.0), cfg.track) if cfg.track.enabled else None
-    return KeyframePoints(R, uv, idepth, var, ab_r, len(sel), ref)
+    return KeyframePoints(R, uv, idepth, var, ab_r, len(sel), ref, sel.uv[~ok])

@@ -229,3 +229,11 @@ def select_points(image: np.ndarray, config: SelectConfig = SelectConfig(),
         idx, lev = idx[keep], lev[keep]
     v, u = np.divmod(idx, img.shape[1])
     return SelectedPoints(np.stack([u, v], 1).astype(np.float64), grad.flat[idx], lev, pot)
+
+
+def spread(uv: np.ndarray, n: int) -> np.ndarray:
+    """Indices of at most ``n`` of the candidates ``uv`` (N, 2), evenly thinned in the
+    selection order (which is spatially spread)."""
+    if len(uv) <= n:
+        return np.arange(len(uv))
+    return np.linspace(0, len(uv) - 1, n).round().astype(int)

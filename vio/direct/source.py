@@ -21,7 +21,9 @@ Per keyframe k (``prepare_update``):
    ``min_visible`` inside keyframe k (at the initial guess) gains target k: its factor
    is rebuilt (remove + add); the others stop gaining targets;
 4. A(k) gets a weak prior, and keyframe k becomes a host with its ``max_points``
-   best-spread candidates (epipolar depths; its factor appears with its first target).
+   best-spread candidates (stereo epipolar depths, filled up with temporal ones where the
+   stereo search placed fewer, ``vio.direct.temporal``; made at the first reader after
+   k's update, its factor appears with its first target).
 
 With ``PointsConfig.exposure_td`` (and td estimated) each host factor also carries td's
 key and sees its frames at their exposure times, moved along the body twists kept at
@@ -53,6 +55,7 @@ from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord
+from vio.direct.temporal import host_candidates
 from vio.direct.trackframe import MotionPrior, track_frame
 from vio.io.euroc import read_image
 
@@ -150,10 +153,10 @@ class PhotometricSource:
                 if self._timed():
                     self.twists[f] = self._twist(f, vals.atPose3(X(f)), vals.atVector(V(f)),
                                                  vals.atConstantBias(B(f)))
+        self._host_pending()      # before TrackFrame: temporal points join its reference
         ab_k = self._track(k, kd, pred, v)
         if self._timed():
             self.twists[k] = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
-        self._host_pending()
         T_k = v.atPose3(X(k))
         for h in sorted(self.hosts):
             host = self.hosts[h]
@@ -331,16 +334,17 @@ class PhotometricSource:
         self._unhosted.append(kd)
 
     def _host_pending(self) -> None:
-        """Make the Host of every keyframe inserted since (waits for its points)."""
+        """Make the Host of every keyframe inserted since (waits for its points; fills
+        them up with temporal depths, ``vio.direct.temporal.host_candidates``)."""
         for kd in self._unhosted:
             if self.kfs.get(kd.k) is not kd:
                 continue
-            idx = _spread(kd.uv, self.cfg.points.max_points)
-            if len(idx) == 0:
+            uv, rho, stereo = host_candidates(kd, self.kfs, self.est.values, self.rig, self.cfg)
+            if len(uv) == 0:
                 continue
-            patch = make_host_patch(kd.left, kd.uv[idx], self.rig.K0)
-            pts = HostPoints.create(patch, kd.idepth[idx], self.cfg.points.grad_c, self.cfg.points.max_targets)
-            self.hosts[kd.k] = Host(kd.k, kd.uv[idx].copy(), pts, [])
+            patch = make_host_patch(kd.left, uv, self.rig.K0)
+            pts = HostPoints.create(patch, rho, self.cfg.points.grad_c, self.cfg.points.max_targets, stereo)
+            self.hosts[kd.k] = Host(kd.k, uv.copy(), pts, [])
         self._unhosted = []
 
     # ------------------------------------------------------------- outputs
@@ -389,11 +393,3 @@ class PhotometricSource:
         uvn = self.rig.K0.unproject(np.array(uv).reshape(-1, 2))[:, :2]
         return PointSnapshot(k, kd.t_ns, uvn, np.array(rmse, float), np.array(hosted, bool),
                              np.array(inv_depth, float))
-
-
-def _spread(uv: np.ndarray, n: int) -> np.ndarray:
-    """Indices of at most ``n`` of the candidates ``uv`` (N, 2), evenly thinned in the
-    selection order (which is spatially spread)."""
-    if len(uv) <= n:
-        return np.arange(len(uv))
-    return np.linspace(0, len(uv) - 1, n).round().astype(int)
