@@ -69,7 +69,9 @@ class HostPoints:
     inverse depths (updated at each linearization), ``alive`` (N,) points in use and
     ``tmask`` (N, M_max) (point, target) pairs in use, target slot m = m-th target.
     ``stereo`` (N,) the points that carry the static stereo term (default all; a point whose
-    depth came from a temporal search has none: its right-image match failed).
+    depth came from a temporal search has none: its right-image match failed); ``rms``
+    (N, M_max) each pair's raw residual RMS at its last linearization (the kernel's
+    ``rms``; inf before the first).
     Clipped host pixels (>= ``SATURATED`` or <= ``DARK``) are marked invalid at creation."""
 
     patch: HostPatch
@@ -78,6 +80,7 @@ class HostPoints:
     alive: np.ndarray
     tmask: np.ndarray
     stereo: np.ndarray
+    rms: np.ndarray
 
     @staticmethod
     def create(patch: HostPatch, rho: np.ndarray, grad_c: float, max_targets: int,
@@ -90,7 +93,8 @@ class HostPoints:
         if sm.shape != (n,):
             raise ValueError(f"HostPoints.create: stereo mask of {sm.size} for {n} points")
         return HostPoints(patch, c2 / (c2 + patch.grad_sq), np.asarray(rho, float).copy(),
-                          np.ones(n, bool), np.ones((n, max_targets), bool), sm)
+                          np.ones(n, bool), np.ones((n, max_targets), bool), sm,
+                          np.full((n, max_targets), np.inf))
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,7 +164,8 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        np.ascontiguousarray(T_rl.rotation().matrix()), np.array(T_rl.translation()),
                        ab_r, w0 * params.stereo_weight,
                        pts.stereo if stereo is not None else np.zeros(len(rho), np.bool_), hk,
-                       params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update)
+                       params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update,
+                       pts.rms if update else pts.rms.copy())
 
 
 @_njit

@@ -285,13 +285,16 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
 @_njit
 def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
                 t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k,
-                outlier_rms, iters, rho_min, rho_max, update):
+                outlier_rms, iters, rho_min, rho_max, update, rms):
     """Reduced normal equations of one host (module docstring).
 
     ``smask`` (N,) bool: the points that carry the static stereo term (their depth came
     from the stereo pair; the others' from a temporal search, ``vio.direct.temporal``).
     Returns (H (n, n), g (n,), cost, reduced cost, n points used); with ``update`` the
-    refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``.
+    refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``,
+    and each (point, target) pair's raw residual RMS over its pattern into ``rms``
+    (N, >= M; intensity units; -1: the pattern left the image; inf: not judged, the
+    point failed its stereo or depth check or too few pattern pixels were valid).
     """
     N, P = Ii.shape
     M = R_ji.shape[0]
@@ -309,6 +312,10 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
                            huber_k, outlier_rms, iters, rho_min, rho_max)
     rows, valid, ms = _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji,
                                  R_jb, R_b_c, t_b_c, ab_h, ab_t, w0)
+    if update:
+        for p in range(N):
+            for m in range(M):
+                rms[p, m] = ms[p, m] if ok_p[p] else np.inf
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
     # the whole image fits worse (blur, a changed exposure not yet estimated)
     th = np.full(M, outlier_rms)

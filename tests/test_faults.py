@@ -217,16 +217,20 @@ def test_photometric_source_lost_needs_five_keyframes_without_pairs():
     from vio.direct.config import DirectConfig
     from vio.direct.source import PhotometricSource
     src = PhotometricSource.__new__(PhotometricSource)
-    src.cfg, src._coverage = DirectConfig(), []
+    src.cfg, src._coverage, src._levels = DirectConfig(), [], []
     n = src.cfg.points.max_points
 
-    def host(k, targets, used):
+    def host(k, targets, used, level=9.0):
         tmask = np.zeros((n, 5), bool)
         tmask[:used, len(targets) - 1] = True
-        return SimpleNamespace(k=k, targets=targets, pts=SimpleNamespace(alive=np.ones(n, bool), tmask=tmask))
+        rms = np.full((n, 5), np.inf)
+        rms[:, :len(targets)] = level
+        rms[::7, :len(targets)] = -1.0                  # left the image: not part of the level
+        return SimpleNamespace(k=k, targets=targets,
+                               pts=SimpleNamespace(alive=np.ones(n, bool), tmask=tmask, rms=rms))
 
-    def window(k, used):   # keyframe k observed by host k - 1 with ``used`` pairs; k hosts too
-        src.hosts = {k - 1: host(k - 1, [k], used), k: host(k, [k + 1], 0)}
+    def window(k, used, level=9.0):   # keyframe k observed by host k - 1 with ``used`` pairs; k hosts too
+        src.hosts = {k - 1: host(k - 1, [k], used, level), k: host(k, [k + 1], 0)}
         return src.lost(k)
 
     assert [window(k, 3) for k in range(1, 5)] == [None] * 4
@@ -237,6 +241,36 @@ def test_photometric_source_lost_needs_five_keyframes_without_pairs():
     assert src.lost(11) is None and window(12, 0) is not None
     src._coverage = []                                  # what reset() does
     assert window(13, 0) is None
+
+
+def test_photometric_source_lost_when_every_pair_fits_badly():
+    """``PhotometricSource.lost``: pairs in use, but the window's median pair RMS above
+    ``lost_rms`` (25) at five keyframes in a row (a window that ran off while its pairs stay
+    in use under the per-target threshold, twice their median); one keyframe at or below it
+    breaks the run."""
+    from types import SimpleNamespace
+    from vio.direct.config import DirectConfig
+    from vio.direct.source import PhotometricSource
+    src = PhotometricSource.__new__(PhotometricSource)
+    src.cfg, src._coverage, src._levels = DirectConfig(), [], []
+    n = src.cfg.points.max_points
+
+    def window(k, level):
+        rms = np.full((n, 5), np.inf)
+        rms[:, 0] = level
+        rms[:n // 3, 0] = 1.0                           # a third fits: the median is the level
+        tmask = np.ones((n, 5), bool)
+        pts = SimpleNamespace(alive=np.ones(n, bool), tmask=tmask, rms=rms)
+        src.hosts = {k - 1: SimpleNamespace(k=k - 1, targets=[k], pts=pts),
+                     k: SimpleNamespace(k=k, targets=[], pts=SimpleNamespace(alive=np.ones(n, bool)))}
+        src.hosts[k].pts.rms, src.hosts[k].pts.tmask = np.full((n, 5), np.inf), tmask
+        return src.lost(k)
+
+    assert [window(k, 30.0) for k in range(1, 5)] == [None] * 4
+    assert window(5, 30.0).startswith("photometric residuals")
+    assert [window(k, 25.0) for k in range(6, 11)] == [None] * 5       # at the limit: not above
+    assert [window(k, 40.0) for k in range(11, 15)] == [None] * 4
+    assert window(15, 40.0) is not None
 
 
 def test_health_fallback_propagates_the_healthy_state_a_lookback_old_and_cooldown_holds():

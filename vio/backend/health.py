@@ -14,9 +14,9 @@ state is plausible. A state is divergent when
   landmarks on real data: 0.18 on MH_05 mono, while five in a row keep over 0.7);
 - with no landmark in the window, a factor source reports that its measurements lost
   the frames (``FactorSource.lost``: the photometric points of ``vio.direct`` once hardly
-  any (point, keyframe) pair is in use at five keyframes in a row, DSO's tracking lost;
-  direct mode has no landmarks for the inlier ratio, and in hybrid mode its KLT
-  landmarks still hold a window whose photometric points are lost);
+  any (point, keyframe) pair is in use, or the window's pairs fit badly, at five keyframes
+  in a row, DSO's tracking lost; direct mode has no landmarks for the inlier ratio, and
+  in hybrid mode its KLT landmarks still hold a window whose photometric points are lost);
 - the newest IMU factor's whitened squared error exceeds ``max_imu_chi2`` (15 degrees
   of freedom: the IMU and the rest of the window disagree wildly).
 
@@ -33,8 +33,9 @@ and yaw (unobservable) tight, roll and pitch ``restart_rp_sigma`` rad, velocity
 ``restart_gyro_bias_sigma`` rad/s (a healthy estimate, tighter than the initial prior:
 the restarted window has no landmarks yet). Only a non-finite state is checked for
 ``cooldown_keyframes`` keyframes after a (re)start. With ``reinit`` the pipeline then
-re-initializes the window by dynamic alignment over the frames after the restart
-(``vio.reinit``): the restart's guess can be as wrong as the state it replaced.
+re-initializes the window by an alignment over the frames after the restart (dynamic;
+stereo in the photometric modes; ``vio.reinit``): the restart's guess can be as wrong as
+the state it replaced.
 
 Worst values on clean real runs (``benchmarks/bench_faults.py``; V1_01 features, MH_05
 mono, MH_01 stereo): speed 1.5 m/s, bias 2.8 sigmas, windowed inlier ratio 0.70, IMU

@@ -209,6 +209,11 @@ class PointsConfig:
     # and ran off at up to 29 m/s unnoticed (benchmarks/README.md, stop 55)
     lost_fraction: float = 0.1
     lost_keyframes: int = 5
+    # ... or when the median raw RMS of the window's (point, keyframe) pairs (intensity
+    # units) exceeds lost_rms at each of those keyframes: real MH_01 and its image-fault
+    # copies stay at or below 12.3 over any 5 keyframes in a row (renders 4.2), windows
+    # that ran off with their pairs still in use at 38-67 (benchmarks/README.md, stop 56)
+    lost_rms: float = 25.0
     min_depth_m: float = 0.2
     max_depth_m: float = 30.0
     use_track_guess: bool = True
@@ -236,8 +241,8 @@ class PointsConfig:
             raise ValueError("PointsConfig: need max_points >= 1, max_targets >= 1, 0 <= min_visible <= 1")
         if len(self.affine_sigma) != 2 or min(self.affine_sigma) <= 0:
             raise ValueError("PointsConfig: affine_sigma needs two positive stds (a, b)")
-        if not 0.0 <= self.lost_fraction <= 1.0 or self.lost_keyframes < 0:
-            raise ValueError("PointsConfig: need 0 <= lost_fraction <= 1 and lost_keyframes >= 0")
+        if not 0.0 <= self.lost_fraction <= 1.0 or self.lost_keyframes < 0 or self.lost_rms <= 0:
+            raise ValueError("PointsConfig: need 0 <= lost_fraction <= 1, lost_keyframes >= 0 and lost_rms > 0")
         if len(self.affine_relinearize) != 2 or min(self.affine_relinearize) <= 0:
             raise ValueError("PointsConfig: affine_relinearize needs two positive thresholds (a, b)")
         if self.outlier_rms <= 0 or self.refine_iters < 0 or not 0 < self.min_depth_m < self.max_depth_m:

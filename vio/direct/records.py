@@ -6,7 +6,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
+
+from factors.photometric import temporal_eval
+
+X, A = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.A
 
 
 @dataclass(frozen=True)
@@ -38,3 +43,35 @@ class PointSnapshot:
     rmse: np.ndarray
     hosted: np.ndarray
     inv_depth: np.ndarray | None = None
+
+
+def snapshot(hosts: dict, kfs: dict, vals: gtsam.Values, rig) -> PointSnapshot | None:
+    """The live points of ``hosts`` (``vio.direct.source.Host`` by keyframe) seen in the
+    newest keyframe of ``kfs`` in ``vals`` (its own points and those of the hosts that
+    target it, at the current estimate); ``rig`` the stereo rig. None before any."""
+    ks = [f for f, fd in kfs.items() if fd.in_graph and vals.exists(A(f))]
+    if not ks:
+        return None
+    k = max(ks)
+    kd = kfs[k]
+    uv, rmse, hosted, inv_depth = [], [], [], []
+    T_ck_w = vals.atPose3(X(k)).compose(rig.T_b_c).inverse()
+    for h, host in hosts.items():
+        i = np.flatnonzero(host.pts.alive)
+        if h == k:
+            uv.extend(host.uv[i]), hosted.extend([True] * len(i)), rmse.extend([np.nan] * len(i))
+            inv_depth.extend(host.pts.rho[i])
+        elif k in host.targets and len(i):
+            ev = temporal_eval(vals.atPose3(X(h)), vals.atPose3(X(k)), host.pts.rho[i],
+                               vals.atVector(A(h)), vals.atVector(A(k)), host.pts.patch.subset(i),
+                               kd.left, rig.K0, rig.T_b_c)
+            n = np.maximum(ev.valid.sum(1), 1)
+            uv.extend(ev.uv[:, 4]), hosted.extend([False] * len(i))
+            rmse.extend(np.sqrt((ev.r ** 2).sum(1) / n))
+            T_ck_ch = T_ck_w.compose(vals.atPose3(X(h)).compose(rig.T_b_c)).matrix()
+            bear = host.pts.patch.subset(i).bearing[:, 4]
+            p_ck = (bear / host.pts.rho[i][:, None]) @ T_ck_ch[:3, :3].T + T_ck_ch[:3, 3]
+            inv_depth.extend(1.0 / p_ck[:, 2])
+    uvn = rig.K0.unproject(np.array(uv).reshape(-1, 2))[:, :2]
+    return PointSnapshot(k, kd.t_ns, uvn, np.array(rmse, float), np.array(hosted, bool),
+                         np.array(inv_depth, float))

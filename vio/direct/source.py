@@ -46,7 +46,7 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth
-from factors.photometric import PhotometricParams, make_host_patch, temporal_eval
+from factors.photometric import PhotometricParams, make_host_patch
 from factors.photometric_host import (HostParams, HostPoints, HostTiming, StereoHost, host_factor,
                                       host_residual_fn)
 from vio.backend.graph import TD, B, V, X
@@ -54,7 +54,7 @@ from vio.backend.motion import body_motion
 from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
-from vio.direct.records import PointSnapshot, TrackRecord
+from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
 from vio.direct.trackframe import MotionPrior, track_frame
 from vio.io.euroc import read_image
@@ -99,6 +99,7 @@ class PhotometricSource:
         self._unhosted: list[KeyframeData] = []   # in the graph, Host not yet made (_host_pending)
         self.last_stats: dict = {}
         self._coverage: list[int] = []   # pairs in use at the last keyframes (``lost``)
+        self._levels: list[float] = []   # the window's median pair RMS at the last keyframes
         a, b = pc.affine_sigma
         self._ab_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, b]))
 
@@ -188,27 +189,41 @@ class PhotometricSource:
             host.factor_index = remap.get(host.factor_index)
 
     def lost(self, k: int) -> str | None:
-        """Why the photometric points have lost the frames, or None: fewer than
-        ``points.lost_fraction * points.max_points`` (point, keyframe) pairs in use for
-        keyframe ``k`` after its update (over the hosts observing it) at each of the last
-        ``points.lost_keyframes`` keyframes that had another host with points in the
-        window (DSO's tracking lost; a divergence for ``vio.backend.health``)."""
+        """Why the photometric points have lost the frames, or None, judged after keyframe
+        ``k``'s update at each of the last ``points.lost_keyframes`` keyframes that had
+        another host with points in the window (DSO's tracking lost; a divergence for
+        ``vio.backend.health``):
+
+        * fewer than ``points.lost_fraction * points.max_points`` (point, keyframe) pairs
+          in use for keyframe k (over the hosts observing it);
+        * or the median raw residual RMS of the window's pairs at their last linearization
+          above ``points.lost_rms``: a window whose pairs all fit badly, which the per-target
+          outlier threshold (twice the median pair RMS) keeps in use."""
         pc = self.cfg.points
         if pc.lost_keyframes == 0 or not any(h.k != k and h.pts.alive.any() for h in self.hosts.values()):
             return None
         used = sum(int((h.pts.alive & h.pts.tmask[:, h.targets.index(k)]).sum())
                    for h in self.hosts.values() if k in h.targets)
         self._coverage = [*self._coverage, used][-pc.lost_keyframes:]
-        floor = pc.lost_fraction * pc.max_points
-        if len(self._coverage) < pc.lost_keyframes or max(self._coverage) >= floor:
+        rms = np.concatenate([h.pts.rms[h.pts.alive, :len(h.targets)].ravel() for h in self.hosts.values()])
+        rms = rms[np.isfinite(rms) & (rms >= 0.0)]
+        self._levels = [*self._levels, float(np.median(rms)) if rms.size else 0.0][-pc.lost_keyframes:]
+        if len(self._coverage) < pc.lost_keyframes:
             return None
-        return (f"photometric points lost: fewer than {floor:.0f} (point, keyframe) pairs in use "
-                f"at the last {pc.lost_keyframes} keyframes")
+        floor = pc.lost_fraction * pc.max_points
+        if max(self._coverage) < floor:
+            return (f"photometric points lost: fewer than {floor:.0f} (point, keyframe) pairs in use "
+                    f"at the last {pc.lost_keyframes} keyframes")
+        if min(self._levels) > pc.lost_rms:
+            return (f"photometric residuals: median pair RMS above {pc.lost_rms:g} (at least "
+                    f"{min(self._levels):.0f}) at the last {pc.lost_keyframes} keyframes")
+        return None
 
     def reset(self) -> None:
         """After a solver restart: forget hosts and keys; the restart keyframe's images
         are kept and its keys inserted at the next keyframe."""
         self._coverage = []
+        self._levels = []
         self.hosts = {}
         self.twists = {}
         self._pending = []
@@ -364,32 +379,7 @@ class PhotometricSource:
         return out
 
     def snapshot(self) -> PointSnapshot | None:
-        """The live points seen in the newest keyframe at the current estimate (display)."""
+        """The live points seen in the newest keyframe at the current estimate (display,
+        ``vio.direct.records.snapshot``)."""
         self._host_pending()
-        vals = self.est.values
-        ks = [f for f, fd in self.kfs.items() if fd.in_graph and vals.exists(A(f))]
-        if not ks:
-            return None
-        k = max(ks)
-        kd = self.kfs[k]
-        uv, rmse, hosted, inv_depth = [], [], [], []
-        T_ck_w = vals.atPose3(X(k)).compose(self.rig.T_b_c).inverse()
-        for h, host in self.hosts.items():
-            i = np.flatnonzero(host.pts.alive)
-            if h == k:
-                uv.extend(host.uv[i]), hosted.extend([True] * len(i)), rmse.extend([np.nan] * len(i))
-                inv_depth.extend(host.pts.rho[i])
-            elif k in host.targets and len(i):
-                ev = temporal_eval(vals.atPose3(X(h)), vals.atPose3(X(k)), host.pts.rho[i],
-                                   vals.atVector(A(h)), vals.atVector(A(k)), host.pts.patch.subset(i),
-                                   kd.left, self.rig.K0, self.rig.T_b_c)
-                n = np.maximum(ev.valid.sum(1), 1)
-                uv.extend(ev.uv[:, 4]), hosted.extend([False] * len(i))
-                rmse.extend(np.sqrt((ev.r ** 2).sum(1) / n))
-                T_ck_ch = T_ck_w.compose(vals.atPose3(X(h)).compose(self.rig.T_b_c)).matrix()
-                bear = host.pts.patch.subset(i).bearing[:, 4]
-                p_ck = (bear / host.pts.rho[i][:, None]) @ T_ck_ch[:3, :3].T + T_ck_ch[:3, 3]
-                inv_depth.extend(1.0 / p_ck[:, 2])
-        uvn = self.rig.K0.unproject(np.array(uv).reshape(-1, 2))[:, :2]
-        return PointSnapshot(k, kd.t_ns, uvn, np.array(rmse, float), np.array(hosted, bool),
-                             np.array(inv_depth, float))
+        return snapshot(self.hosts, self.kfs, self.est.values, self.rig)
