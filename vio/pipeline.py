@@ -104,12 +104,6 @@ def _tracks(fr: FeatureFrame | None) -> tuple[np.ndarray | None, np.ndarray | No
     return (None, None) if fr is None else (fr.ids, fr.uv)
 
 
-def _matched(pkt: FramePacket) -> bool:
-    """Whether the packet has any cam1 match."""
-    fr = pkt.features
-    return fr is not None and fr.right_uv is not None and bool(np.isfinite(fr.right_uv).any())
-
-
 class Pipeline:
     """VIO on feature packets: feed ``FramePacket``s with ``features`` in time order to
     ``process`` (image packets go through ``vio.tracking.ImageStage`` first). With
@@ -125,6 +119,9 @@ class Pipeline:
         self.cam1 = cam1
         self.est = Estimator(imu_calib, cam, cfg.backend, cfg.td_s, cam1)
         self.reinit = Reinit(self)   # after a divergence (HealthConfig.reinit)
+        # attaches fresh factor sources to a re-initialization's new estimator (None: the
+        # estimator has none, or they cannot be rebuilt, and the re-initialization is off)
+        self.sources_factory: Callable[[Estimator], None] | None = None
         self.muted = False           # replaying a re-initialization's buffer: no outputs
         self._init_buf: list[FramePacket] = []
         self.sinks: list[Callable[[FrameOutput], None]] = []
@@ -289,7 +286,7 @@ class Pipeline:
         # window that starts after its first seconds) cannot give the structure: the window
         # starts at the next keyframe
         buf = self._init_buf
-        while len(buf) > 1 and buf[0].keyframe is False and not _matched(buf[0]):
+        while len(buf) > 1 and buf[0].keyframe is False and not buf[0].stereo_matched:
             buf.pop(0)
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
         if span < sc.window_s - 1e-6:

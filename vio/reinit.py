@@ -17,9 +17,19 @@ to the restart's position and yaw (the world frame is kept; roll, pitch, velocit
 biases are the alignment's), replays the buffer without emitting, and takes over. The
 outputs already given stay; the next one continues from the new estimator, so the output
 steps by what the soft restart had drifted over the buffer (about 1.5 s). Extrinsic and td
-carry over; the counters (restarts, recoveries, bridged gaps) continue. Not in the
-photometric modes (their factor sources keep per-keyframe state). ``HealthConfig.reinit``
-switches it off.
+carry over; the counters (restarts, recoveries, bridged gaps) continue.
+``HealthConfig.reinit`` switches it off.
+
+The photometric modes (``Pipeline.sources_factory`` set by ``vio.direct.mode``) buffer
+from the packet after the restart (the restart's own features are the restarted window's
+projected points): direct mode runs its KLT stage again meanwhile, and the buffer is
+aligned as their start is, by the stereo-inertial alignment (``vio.backend.stereo_init``,
+0.5 s, no excitation needed); the new estimator gets a fresh photometric source before its
+first keyframe. Real MH_01 direct (benchmarks/README.md, stop 56): windows that ran off
+(points placed 3-5 keyframes back with the right camera covered; the IMU prediction as
+each keyframe's guess) 6.4 m / 7.2 m / 43 m -> 1.10 / 0.39 / 0.32 m; the restarts the soft
+restart alone handled move by 0.2-0.3 mm (black frames 13.1 -> 13.3 mm, left camera
+covered 33.0 -> 33.3 mm).
 
 Measured (real V1_01 features, ``benchmarks/bench_faults.py --at 7 / 15 / 23``, ATE m,
 soft restart only -> with the re-initialization): 3-s IMU gap at 7 s 149 (11 restarts) ->
@@ -41,6 +51,7 @@ from vio.backend import graph
 from vio.backend.dynamic_init import align, init_window
 from vio.backend.estimator import Estimator
 from vio.backend.init import InitialState
+from vio.backend.stereo_init import stereo_align
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +76,8 @@ class Reinit:
     def __init__(self, pipe) -> None:
         self.pipe = pipe
         self.buf: list = []                      # packets since the restart
-        self.poses: list[gtsam.Pose3] = []       # their outputs (T_w_b)
+        self.outs: list = []                     # their outputs (FrameOutput)
+        self.active = False                      # buffering since a restart
         self._seen = 0
         self._next_try: int | None = None
         self.count = 0
@@ -74,35 +86,65 @@ class Reinit:
         """Called with every initialized step's packet and output."""
         pipe = self.pipe
         est = pipe.est
-        if not pipe.cfg.backend.health.reinit or est.sources:
+        sources = pipe.sources_factory
+        if not pipe.cfg.backend.health.reinit or (est.sources and sources is None):
             return
         if est.divergences > self._seen:        # a soft restart at this packet: buffer from here
             self._seen = est.divergences
-            self.buf, self.poses, self._next_try = [pkt], [out.T_w_b], None
+            self.buf, self.outs, self._next_try = [pkt], [out], None
+            if sources is not None:              # its features were the restarted window's
+                self.buf, self.outs = [], []     # (vio.direct.mode): buffer from the next one
+            self.active = True
             return
-        if not self.buf:
+        if not self.active:
             return
         if pkt.imu_gaps:                         # no alignment across a gap
-            self.buf, self.poses = [], []
+            self.buf, self.outs, self.active = [], [], False
             return
         self.buf.append(pkt)
-        self.poses.append(out.T_w_b)
-        dc = pipe.cfg.backend.init.dynamic
-        span = (self.buf[-1].t_ns - self.buf[0].t_ns) * 1e-9
-        if span < dc.window_s or (self._next_try is not None and pkt.t_ns < self._next_try):
+        self.outs.append(out)
+        res, span = self._align()
+        if res is None:
             return
-        res = align(init_window(self.buf, dc.step_s), pipe.cam, pipe.imu_calib, pipe.cfg.backend)
+
         if res.ok:
-            self._switch(moved_to(res.state, self.poses[0]), span)
-            self.buf, self.poses = [], []
+            state = moved_to(res.state, self.outs[0].T_w_b)
+            self._switch(state, span)
+            self.buf, self.outs, self.active = [], [], False
             return
         log.info("re-initialization over %.2f s not yet possible: %s", span, res.reason)
+        dc = pipe.cfg.backend.init.dynamic
         if span + dc.retry_s > dc.max_window_s + 1e-6:   # as at the start: slide the window on
             keep = self.buf[-1].t_ns - int(dc.window_s * 0.7e9)
             i = next(j for j, p in enumerate(self.buf) if p.t_ns >= keep)
-            self.buf, self.poses, self._next_try = self.buf[i:], self.poses[i:], None
+            self.buf, self.outs, self._next_try = self.buf[i:], self.outs[i:], None
         else:
             self._next_try = pkt.t_ns + int(dc.retry_s * 1e9)
+
+    def _stereo(self) -> bool:
+        return self.pipe.sources_factory is not None and self.pipe.est.T_c0_c1 is not None
+
+    def _align(self):
+        """(alignment result or None while the buffer is too short or waits for its next
+        try, the buffer's span in s). The photometric modes align their buffer's stereo
+        KLT frames as their start does (``vio.backend.stereo_init``), from the first frame
+        matched in cam1; the other modes run the dynamic alignment."""
+        pipe, buf = self.pipe, self.buf
+        if self._stereo():
+            while buf and not buf[0].stereo_matched:
+                buf.pop(0)
+                self.outs.pop(0)
+            sc = pipe.cfg.backend.init.stereo
+            span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9 if buf else 0.0
+            if span < sc.window_s - 1e-6 or (self._next_try is not None and buf[-1].t_ns < self._next_try):
+                return None, span
+            return stereo_align(init_window(buf, 0.0), pipe.cam, pipe.est.T_c0_c1, pipe.imu_calib,
+                                pipe.cfg.backend), span
+        dc = pipe.cfg.backend.init.dynamic
+        span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
+        if span < dc.window_s or (self._next_try is not None and buf[-1].t_ns < self._next_try):
+            return None, span
+        return align(init_window(buf, dc.step_s), pipe.cam, pipe.imu_calib, pipe.cfg.backend), span
 
     def _switch(self, state: InitialState, span: float) -> None:
         """Start a new estimator at ``state`` (the buffer's first frame), replay the buffer
@@ -112,6 +154,8 @@ class Reinit:
         for name in COUNTERS:
             setattr(new, name, getattr(old, name))
         td = float(old.values.atVector(graph.TD)[0]) if old.values.exists(graph.TD) else None
+        if pipe.sources_factory is not None:
+            pipe.sources_factory(new)            # fresh factor sources before the first keyframe
         try:
             new.initialize(state, T_b_c=old.extrinsic(), td_s=td)
         except RuntimeError as exc:
@@ -122,8 +166,8 @@ class Reinit:
         self._seen = new.divergences
         self.count += 1
         T_now, T_old = new.latest()[0], old.latest()[0]
-        log.warning("t=%d ns: re-initialized after a divergence restart, from t=%d ns (dynamic "
+        log.warning("t=%d ns: re-initialized after a divergence restart, from t=%d ns (%s "
                     "alignment over %.2f s, re-initialization #%d): position and yaw of that "
                     "frame's output kept; the output steps by %.3f m to the aligned estimate",
-                    buf[-1].t_ns, buf[0].t_ns, span, self.count,
+                    buf[-1].t_ns, buf[0].t_ns, "stereo" if self._stereo() else "dynamic", span, self.count,
                     float(np.linalg.norm(T_now.translation() - T_old.translation())))

@@ -100,6 +100,12 @@ class FramePacket:
         """Duration covered by ``imu`` in seconds."""
         return float(self.imu.t_ns[-1] - self.imu.t_ns[0]) * 1e-9
 
+    @property
+    def stereo_matched(self) -> bool:
+        """Whether the packet's features have any cam1 match."""
+        fr = self.features
+        return fr is not None and fr.right_uv is not None and bool(np.isfinite(fr.right_uv).any())
+
 
 @dataclass(frozen=True)
 class SyncResult:

@@ -35,6 +35,11 @@ almost every frame a keyframe (279 keyframes in 20 s, 1.1 s per frame); at 40 px
 seed-3 sequence has 150 keyframes, 0.3 s per frame and the same ATE (2.5 cm); 60 px
 lost it.
 
+After a divergence restart (the source's ``lost``: points lost, or residuals that stay
+high), ``vio.reinit`` re-initializes the window: ``DirectStage`` runs KLT again while it
+buffers (direct mode) and ``DirectStage.rebuild`` gives the new estimator a fresh source
+(``Pipeline.sources_factory``).
+
 TrackFrame runs once per keyframe inside the source (initial guess of the keyframe
 pose, tracking-failure signal in ``source.tracks``), not per frame. A Rerun sink
 that has ``add_direct_source(getter)`` receives ``source.snapshot`` (points of the
@@ -78,17 +83,35 @@ class DirectStage:
     def __init__(self, pipe, data, cfg, hybrid: bool, source: PhotometricSource,
                  klt: bool = True) -> None:
         self.pipe, self.hybrid, self.source = pipe, hybrid, source
-        self.klt = ImageStage(data.cam0.calib, data.cam1.calib, cfg.frontend) if klt else None
+        self._klt_args = (data.cam0.calib, data.cam1.calib, cfg.frontend)
+        self.klt = ImageStage(*self._klt_args) if klt else None
         self.cam0 = data.cam0.calib
+        self._cfg = cfg.direct
         self._k = None
         self._pim = None
+        self._tracking = True          # the KLT stage saw the previous packet
+
+    def rebuild(self, est) -> None:
+        """Attach a fresh photometric source (and, in direct mode, the featureless landmark
+        manager) to ``est``, a re-initialization's new estimator (``vio.reinit``), before
+        its first keyframe; the flow features follow the new source."""
+        self.source = PhotometricSource(est, self.source.rig, self._cfg)
+        est.sources.append(self.source)
+        if not self.hybrid:
+            est.lm = FeaturelessLandmarks(est)
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
         if max(len(pkt.images), len(pkt.image_files)) < 2:
             raise ValueError(f"frame {pkt.stamp_ns}: direct/hybrid mode needs cam0 and cam1 images")
         est = self.pipe.est
-        if self.hybrid or not est.initialized:
+        # KLT while initializing, and in direct mode also while a re-initialization buffers
+        # (its stereo alignment needs tracks, vio.reinit), restarted after a pause
+        if self.hybrid or not est.initialized or self.pipe.reinit.active:
+            if self.klt is not None and not self._tracking:
+                self.klt = ImageStage(*self._klt_args)
+            self._tracking = True
             return pkt if self.klt is None else self.klt(pkt)
+        self._tracking = False
         # direct after initialization: no image is read here; the source reads a
         # keyframe's pair when it observes it (two PNG decodes per frame were ~20% of
         # direct mode's time on real MH_01, where 3 frames in 10 are keyframes)
@@ -170,8 +193,10 @@ def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
     pipe.est.sources.append(source)
     if not hybrid:
         pipe.est.lm = FeaturelessLandmarks(pipe.est)
+    stage = DirectStage(pipe, data, cfg, hybrid, source, klt)
+    pipe.sources_factory = stage.rebuild
     for sink in pipe.sinks:
         register = getattr(sink, "add_direct_source", None)
         if register is not None:
-            register(source.snapshot)
-    return DirectStage(pipe, data, cfg, hybrid, source, klt)
+            register(lambda: stage.source.snapshot())
+    return stage
