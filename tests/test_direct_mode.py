@@ -254,23 +254,26 @@ def test_exposure_td_lets_direct_mode_find_the_time_offset(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["direct", "hybrid"])
 def test_photometric_window_lost_is_restarted_and_reinitialized(sim_exposure, mode):
-    """A window the photometric points declare lost (here forced: any median pair RMS above
-    0.5 counts, 5 keyframes in a row) is soft-restarted, then re-initialized from a stereo
-    alignment of the KLT tracks that follow (``vio.reinit``) with a fresh photometric source;
-    the run goes on to the last frame within the clean run's bound. Direct mode counts its
-    lost signal (no landmark in the window); hybrid's landmarks hold its window."""
+    """A photometric window declared diverged is soft-restarted, then re-initialized from a
+    stereo alignment of the KLT tracks that follow (``vio.reinit``) with a fresh photometric
+    source; the run goes on to the last frame (measured 10.0 / 7.6 mm; clean 1.5 / 2.1 mm).
+    Forced: direct by its own lost signal (any median pair RMS above 0.5, 5 keyframes in a
+    row; hybrid's landmarks hold its window and it never counts there), hybrid by a speed
+    limit of 0.05 m/s."""
     cfg = _small(mode == "hybrid")
-    d = cfg.direct
-    cfg = dataclasses.replace(cfg, direct=dataclasses.replace(d, points=dataclasses.replace(d.points, lost_rms=0.5)))
+    d, be = cfg.direct, cfg.backend
+    if mode == "direct":
+        cfg = dataclasses.replace(cfg, direct=dataclasses.replace(d, points=dataclasses.replace(d.points, lost_rms=0.5)))
+    else:
+        cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
+            be, health=dataclasses.replace(be.health, max_speed=0.05)))
     sink = _SnapshotSink()
     res = run_dataset(sim_exposure, cfg, mode=mode, sinks=[sink])
     e = evaluate(*res.arrays(), sim_exposure.groundtruth)
     assert len(res.outputs) == len(sim_exposure.cam0.t_ns)
+    assert res.restarts >= 1 and res.reinits >= 1
     if mode == "direct":
-        assert res.restarts >= 1 and res.reinits >= 1
         assert all(o.n_landmarks == 0 for o in res.outputs)
-    else:
-        assert res.restarts == 0 and res.reinits == 0
     assert e.ate_rmse < 0.02, f"{mode}: ATE {e.ate_rmse:.4f} m"
     snap = sink.getter()                     # the sink follows the new source
     assert snap is not None and len(snap.uv) > 20
