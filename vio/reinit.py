@@ -106,10 +106,8 @@ class Reinit:
         res, span = self._align()
         if res is None:
             return
-
         if res.ok:
-            state = moved_to(res.state, self.outs[0].T_w_b)
-            self._switch(state, span)
+            self._switch(moved_to(res.state, self.outs[0].T_w_b), span)
             self.buf, self.outs, self.active = [], [], False
             return
         log.info("re-initialization over %.2f s not yet possible: %s", span, res.reason)
