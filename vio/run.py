@@ -118,7 +118,7 @@ def resolve_mode(data: EurocDataset, mode: str) -> str:
     if mode != "features" and not data.cam0.has_images():
         raise ValueError(f"{data.root}: no cam0 images for --mode {mode}")
     if mode in STEREO_MODES and (data.cam1 is None or not data.cam1.has_images()):
-        raise ValueError(f"{data.root}: no cam1 images for --mode stereo")
+        raise ValueError(f"{data.root}: no cam1 images for --mode {mode}")
     return mode
 
 
