@@ -9,7 +9,9 @@ like the original. Times are seconds relative to the first IMU sample of the sou
 - :func:`imu_gap` removes the IMU rows of ``[t_s, t_s + dur_s)``;
 - :func:`imu_spike` overwrites the accelerometer/gyro of the row nearest ``t_s``;
 - :func:`drop_frames` removes the camera frames (and their feature rows) of a stretch;
-- :func:`shift_camera_stamps` moves every camera stamp, as a camera-IMU time offset does.
+- :func:`shift_camera_stamps` moves every camera stamp, as a camera-IMU time offset does;
+- :func:`image_fault` alters a camera's images over a stretch (covered, black, blurred,
+  over-exposed).
 """
 
 from __future__ import annotations
@@ -152,4 +154,57 @@ def shift_camera_stamps(root: str | Path, dt_s: float) -> int:
     n = _edit_csv(mav0 / "cam0" / "data.csv", move)
     for p in (mav0 / "cam0" / "features.csv", mav0 / "cam1" / "data.csv"):
         _edit_csv(p, move)
+    return n
+
+
+IMAGE_FAULTS = ("cover", "black", "blur", "exposure")
+"""``cover``: a lens covered (every pixel 12); ``black``: every pixel 0; ``blur``: a 15-px
+horizontal motion blur; ``exposure``: intensities x2.2, clipped at 255."""
+
+
+def _altered(img: np.ndarray, kind: str) -> np.ndarray:
+    import cv2
+
+    if kind == "cover":
+        return np.full_like(img, 12)
+    if kind == "black":
+        return np.zeros_like(img)
+    if kind == "blur":
+        return cv2.filter2D(img, -1, np.full((1, 15), 1.0 / 15, np.float32))
+    return np.clip(img.astype(np.float64) * 2.2, 0, 255).astype(img.dtype)
+
+
+def image_fault(root: str | Path, cam: str, t_s: float, dur_s: float, kind: str,
+                t0_ns: int | None = None) -> int:
+    """Replace the images of camera ``cam`` ("cam0", "cam1") with stamps in
+    ``[t_s, t_s + dur_s)`` s after ``t0_ns`` (default: the folder's first IMU sample) by
+    the fault ``kind`` (``IMAGE_FAULTS``) of each. The copy's image folder becomes a
+    folder of links to the source images, the altered ones written in their place (the
+    source is never written). Returns the number of images altered."""
+    import cv2
+
+    if kind not in IMAGE_FAULTS:
+        raise ValueError(f"image_fault: unknown fault {kind!r} (choose from {IMAGE_FAULTS})")
+    mav0 = find_mav0(root)
+    t0 = _t0(mav0) if t0_ns is None else t0_ns
+    lo, hi = t0 + int(round(t_s * 1e9)), t0 + int(round((t_s + dur_s) * 1e9))
+    data = mav0 / cam / "data"
+    if data.is_symlink():                 # copy_dataset's link to the whole folder
+        src = data.resolve()
+        data.unlink()
+        data.mkdir()
+        for f in src.iterdir():
+            (data / f.name).symlink_to(f)
+    n = 0
+    for line in (mav0 / cam / "data.csv").read_text().splitlines():
+        t = _stamp(line)
+        if t is None or not lo <= t < hi:
+            continue
+        f = data / line.split(",", 1)[1].strip()
+        img = cv2.imread(str(f.resolve()), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{f}: not a readable image")
+        f.unlink()
+        cv2.imwrite(str(f), _altered(img, kind))
+        n += 1
     return n
