@@ -129,8 +129,8 @@ class DirectStage:
         since the pipeline integrates the packet only after this stage)."""
         est = self.pipe.est
         T, v, b = est.latest()
-        if self._k != est.k:
-            self._k = est.k
+        if self._k != (id(est), est.k):       # a new keyframe, or a re-initialization's estimator
+            self._k = (id(est), est.k)
             self._pim = gtsam.PreintegratedCombinedMeasurements(est.params, b)
         integrate(self._pim, pkt.imu)
         return self._pim.predict(gtsam.NavState(T, v), b).pose()
