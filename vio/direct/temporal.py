@@ -13,8 +13,8 @@ when the stereo ones are fewer than ``max_points``:
    relative pose of the current estimate; keep a depth that passes the search's checks
    (``vio.direct.epipolar``), lies in ``PointsConfig``'s depth range and whose standard
    deviation (the match error along the line over the line's pixels per inverse depth) is
-   at most ``temporal_max_rel_std`` of the inverse depth, so a short baseline or a line
-   along the image gradient yields no point rather than a wrong one;
+   at most ``temporal_max_rel_std`` of the inverse depth, so a short baseline or an edge
+   along the line yields no point rather than a wrong one;
 2. search again in each of the ``temporal_checks`` keyframes before those (``agree``): a
    depth the second baseline contradicts (beyond ``temporal_agree_k`` standard deviations)
    is dropped.
