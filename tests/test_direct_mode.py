@@ -277,3 +277,25 @@ def test_photometric_window_lost_is_restarted_and_reinitialized(sim_exposure, mo
     assert e.ate_rmse < 0.02, f"{mode}: ATE {e.ate_rmse:.4f} m"
     snap = sink.getter()                     # the sink follows the new source
     assert snap is not None and len(snap.uv) > 20
+
+
+@pytest.mark.slow
+def test_photometric_reinitialization_without_the_right_camera(sim_exposure, tmp_path, caplog):
+    """With the right camera covered from 1 s on, no buffered frame is matched in cam1: the
+    re-initialization after a (forced) restart falls back to the dynamic alignment of the
+    left camera's KLT tracks instead of waiting for a stereo match that never comes
+    (measured 39 mm on these 4 s; 1.5 mm clean)."""
+    import logging
+    from vio.inject import copy_dataset, image_fault
+    root = copy_dataset(sim_exposure.root, tmp_path / "cov")
+    assert image_fault(root, "cam1", 1.0, 10.0, "cover") > 50
+    data = load_euroc(root)
+    cfg = _small(False)
+    d = cfg.direct
+    cfg = dataclasses.replace(cfg, direct=dataclasses.replace(d, points=dataclasses.replace(d.points, lost_rms=0.5)))
+    with caplog.at_level(logging.WARNING, logger="vio.reinit"):
+        res = run_dataset(data, cfg, mode="direct")
+    assert res.restarts >= 1 and res.reinits >= 1 and "(dynamic alignment over" in caplog.text
+    assert len(res.outputs) == len(data.cam0.t_ns)
+    e = evaluate(*res.arrays(), data.groundtruth)
+    assert e.ate_rmse < 0.08, f"ATE {e.ate_rmse:.4f} m"

@@ -25,7 +25,9 @@ from the packet after the restart (the restart's own features are the restarted 
 projected points): direct mode runs its KLT stage again meanwhile, and the buffer is
 aligned as their start is, by the stereo-inertial alignment (``vio.backend.stereo_init``,
 0.5 s, no excitation needed); the new estimator gets a fresh photometric source before its
-first keyframe. Real MH_01 direct (benchmarks/README.md, stop 56): windows that ran off
+first keyframe; with no buffered frame matched in cam1 (the right camera lost) the
+dynamic alignment of the left camera's tracks is used instead. Real MH_01 direct
+(benchmarks/README.md, stop 56): windows that ran off
 (points placed 3-5 keyframes back with the right camera covered; the IMU prediction as
 each keyframe's guess) 6.4 m / 7.2 m / 43 m -> 1.10 / 0.39 / 0.32 m; the restarts the soft
 restart alone handled move by 0.2-0.3 mm (black frames 13.1 -> 13.3 mm, left camera
@@ -78,6 +80,7 @@ class Reinit:
         self.buf: list = []                      # packets since the restart
         self.outs: list = []                     # their outputs (FrameOutput)
         self.active = False                      # buffering since a restart
+        self.method = "dynamic"                  # the alignment of the last try
         self._seen = 0
         self._next_try: int | None = None
         self.count = 0
@@ -119,25 +122,26 @@ class Reinit:
         else:
             self._next_try = pkt.t_ns + int(dc.retry_s * 1e9)
 
-    def _stereo(self) -> bool:
-        return self.pipe.sources_factory is not None and self.pipe.est.T_c0_c1 is not None
-
     def _align(self):
         """(alignment result or None while the buffer is too short or waits for its next
         try, the buffer's span in s). The photometric modes align their buffer's stereo
         KLT frames as their start does (``vio.backend.stereo_init``), from the first frame
-        matched in cam1; the other modes run the dynamic alignment."""
+        matched in cam1 (the buffer is cut there); with no frame matched (the right camera
+        lost) and the other modes, the dynamic alignment."""
         pipe, buf = self.pipe, self.buf
-        if self._stereo():
-            while buf and not buf[0].stereo_matched:
-                buf.pop(0)
-                self.outs.pop(0)
+        first = None
+        if pipe.sources_factory is not None and pipe.est.T_c0_c1 is not None:
+            first = next((i for i, p in enumerate(buf) if p.stereo_matched), None)
+        if first is not None:
+            del buf[:first], self.outs[:first]
+            self.method = "stereo"
             sc = pipe.cfg.backend.init.stereo
-            span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9 if buf else 0.0
+            span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
             if span < sc.window_s - 1e-6 or (self._next_try is not None and buf[-1].t_ns < self._next_try):
                 return None, span
             return stereo_align(init_window(buf, 0.0), pipe.cam, pipe.est.T_c0_c1, pipe.imu_calib,
                                 pipe.cfg.backend), span
+        self.method = "dynamic"
         dc = pipe.cfg.backend.init.dynamic
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
         if span < dc.window_s or (self._next_try is not None and buf[-1].t_ns < self._next_try):
@@ -167,5 +171,5 @@ class Reinit:
         log.warning("t=%d ns: re-initialized after a divergence restart, from t=%d ns (%s "
                     "alignment over %.2f s, re-initialization #%d): position and yaw of that "
                     "frame's output kept; the output steps by %.3f m to the aligned estimate",
-                    buf[-1].t_ns, buf[0].t_ns, "stereo" if self._stereo() else "dynamic", span, self.count,
+                    buf[-1].t_ns, buf[0].t_ns, self.method, span, self.count,
                     float(np.linalg.norm(T_now.translation() - T_old.translation())))
