@@ -165,7 +165,7 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        ab_r, w0 * params.stereo_weight,
                        pts.stereo if stereo is not None else np.zeros(len(rho), np.bool_), hk,
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update,
-                       pts.rms if update else pts.rms.copy())
+                       pts.rms)   # written only with update
 
 
 @_njit

@@ -292,9 +292,8 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     from the stereo pair; the others' from a temporal search, ``vio.direct.temporal``).
     Returns (H (n, n), g (n,), cost, reduced cost, n points used); with ``update`` the
     refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``,
-    and each (point, target) pair's raw residual RMS over its pattern into ``rms``
-    (N, >= M; intensity units; -1: the pattern left the image; inf: not judged, the
-    point failed its stereo or depth check or too few pattern pixels were valid).
+    and each (point, target) pair's pattern RMS into ``rms`` (N, >= M; ``_pair_rows``'s:
+    -1 left the image, inf not judged or the point failed its stereo or depth check).
     """
     N, P = Ii.shape
     M = R_ji.shape[0]
@@ -313,9 +312,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     rows, valid, ms = _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji,
                                  R_jb, R_b_c, t_b_c, ab_h, ab_t, w0)
     if update:
-        for p in range(N):
-            for m in range(M):
-                rms[p, m] = ms[p, m] if ok_p[p] else np.inf
+        rms[:, :M] = ms          # inf where pass 1 left the point out
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
     # the whole image fits worse (blur, a changed exposure not yet estimated)
     th = np.full(M, outlier_rms)
