@@ -3,7 +3,8 @@
 Keys: ``X(k)`` body pose ``T_w_b`` (Pose3), ``V(k)`` velocity in the world (m/s),
 ``B(k)`` IMU bias, ``E(0)`` camera extrinsic ``T_b_c`` (Pose3), ``D(0)`` residual
 time offset td (1-vector, s, on top of the offset applied by the sync layer),
-``L(n)`` landmark inverse depths (1-vector, 1/m) in their anchor camera.
+``L(n)`` landmark inverse depths (1-vector, 1/m) in their anchor camera, ``A(k)`` the
+photometric keyframes' affine brightness [a, b] (``vio.direct.source``).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ E = gtsam.symbol_shorthand.E
 D = gtsam.symbol_shorthand.D
 L = gtsam.symbol_shorthand.L
 P = gtsam.symbol_shorthand.P   # world-point landmarks (vio.backend.point_tracks)
+A = gtsam.symbol_shorthand.A   # a keyframe's affine brightness [a, b] (vio.direct's factor source)
 
 EXTRINSIC = E(0)
 TD = D(0)

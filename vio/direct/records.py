@@ -10,8 +10,7 @@ import gtsam
 import numpy as np
 
 from factors.photometric import temporal_eval
-
-X, A = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.A
+from vio.backend.graph import A, X
 
 
 @dataclass(frozen=True)

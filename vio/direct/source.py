@@ -49,7 +49,7 @@ from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch
 from factors.photometric_host import (HostParams, HostPoints, HostTiming, StereoHost, host_factor,
                                       host_residual_fn)
-from vio.backend.graph import TD, B, V, X
+from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
@@ -60,7 +60,6 @@ from vio.direct.trackframe import MotionPrior, track_frame
 from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
-A = gtsam.symbol_shorthand.A
 
 
 @dataclass(eq=False)

@@ -31,13 +31,12 @@ import gtsam
 import numpy as np
 
 from factors.photometric import Pinhole
-from vio.backend.graph import X
+from vio.backend.graph import A, X
 from vio.direct.config import DirectConfig
 from vio.direct.epipolar import epipolar_search
 from vio.direct.keyframe import KeyframeData, StereoRig
 from vio.direct.select import spread
 
-A = gtsam.symbol_shorthand.A
 
 
 def widest_baseline(T_w_ck: gtsam.Pose3, refs: dict[int, gtsam.Pose3]) -> int | None:
