@@ -94,10 +94,10 @@ class Reinit:
             return
         if est.divergences > self._seen:        # a soft restart at this packet: buffer from here
             self._seen = est.divergences
-            self.buf, self.outs, self._next_try = [pkt], [out], None
-            if sources is not None:              # its features were the restarted window's
-                self.buf, self.outs = [], []     # (vio.direct.mode): buffer from the next one
-            self.active = True
+            # the photometric modes' restart packet carries the restarted window's projected
+            # points as features (vio.direct.mode): their buffer starts at the next packet
+            self.buf, self.outs = ([], []) if sources is not None else ([pkt], [out])
+            self._next_try, self.active = None, True
             return
         if not self.active:
             return
@@ -134,19 +134,16 @@ class Reinit:
             first = next((i for i, p in enumerate(buf) if p.stereo_matched), None)
         if first is not None:
             del buf[:first], self.outs[:first]
-            self.method = "stereo"
-            sc = pipe.cfg.backend.init.stereo
-            span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
-            if span < sc.window_s - 1e-6 or (self._next_try is not None and buf[-1].t_ns < self._next_try):
-                return None, span
-            return stereo_align(init_window(buf, 0.0), pipe.cam, pipe.est.T_c0_c1, pipe.imu_calib,
-                                pipe.cfg.backend), span
-        self.method = "dynamic"
-        dc = pipe.cfg.backend.init.dynamic
+        self.method = "dynamic" if first is None else "stereo"
+        ic = pipe.cfg.backend.init
+        window = ic.dynamic.window_s if first is None else ic.stereo.window_s - 1e-6
         span = (buf[-1].t_ns - buf[0].t_ns) * 1e-9
-        if span < dc.window_s or (self._next_try is not None and buf[-1].t_ns < self._next_try):
+        if span < window or (self._next_try is not None and buf[-1].t_ns < self._next_try):
             return None, span
-        return align(init_window(buf, dc.step_s), pipe.cam, pipe.imu_calib, pipe.cfg.backend), span
+        if first is None:
+            return align(init_window(buf, ic.dynamic.step_s), pipe.cam, pipe.imu_calib, pipe.cfg.backend), span
+        return stereo_align(init_window(buf, 0.0), pipe.cam, pipe.est.T_c0_c1, pipe.imu_calib,
+                            pipe.cfg.backend), span
 
     def _switch(self, state: InitialState, span: float) -> None:
         """Start a new estimator at ``state`` (the buffer's first frame), replay the buffer
