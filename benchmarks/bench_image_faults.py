@@ -27,8 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
 from vio.evaluation import evaluate  # noqa: E402
-from vio.inject import copy_dataset, image_fault  # noqa: E402
-from vio.io.euroc import find_mav0, load_euroc  # noqa: E402
+from vio.inject import copy_dataset, frame_window, image_fault  # noqa: E402
+from vio.io.euroc import load_euroc  # noqa: E402
 from vio.run import load_config, run_dataset  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "euroc_MH_01_stereo_synimu"
@@ -37,34 +37,13 @@ FAULTS = ("both:black:150:20,both:blur:150:20,both:exposure:150:20,cam1:cover:15
           "cam1:cover:20:300")
 
 
-def _cam0_times(root: Path) -> tuple[list[int], int]:
-    """cam0's frame stamps (ns) and the first IMU stamp of the folder."""
-    mav0 = find_mav0(root)
-
-    def stamps(csv: Path) -> list[int]:
-        out = []
-        for line in csv.read_text().splitlines():
-            head = line.split(",", 1)[0].strip()
-            if head.isdigit():
-                out.append(int(head))
-        return out
-
-    return stamps(mav0 / "cam0" / "data.csv"), stamps(mav0 / "imu0" / "data.csv")[0]
-
-
 def faulty_copy(src: Path, fault: str, out: Path) -> Path:
     """A copy of ``src`` with the fault ``CAMS:KIND:FRAME:N`` applied."""
     cams, kind, first, n = fault.split(":")
-    t_cam, t0 = _cam0_times(src)
-    i, j = int(first), min(int(first) + int(n), len(t_cam))
-    if not 0 <= i < j:
-        raise ValueError(f"fault {fault!r}: frames {i}..{j} outside the {len(t_cam)} of {src}")
-    # from halfway to the previous frame to halfway past the last one: exactly frames i..j-1
-    lo = (t_cam[i] + t_cam[i - 1]) / 2 if i > 0 else t_cam[i] - 1
-    hi = (t_cam[j - 1] + t_cam[j]) / 2 if j < len(t_cam) else t_cam[-1] + 1
+    t_s, dur_s = frame_window(src, int(first), int(n))
     root = copy_dataset(src, out)
     for cam in (("cam0", "cam1") if cams == "both" else (cams,)):
-        image_fault(root, cam, (lo - t0) * 1e-9, (hi - lo) * 1e-9, kind, t0)
+        image_fault(root, cam, t_s, dur_s, kind)
     return root
 
 

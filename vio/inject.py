@@ -11,7 +11,7 @@ like the original. Times are seconds relative to the first IMU sample of the sou
 - :func:`drop_frames` removes the camera frames (and their feature rows) of a stretch;
 - :func:`shift_camera_stamps` moves every camera stamp, as a camera-IMU time offset does;
 - :func:`image_fault` alters a camera's images over a stretch (covered, black, blurred,
-  over-exposed).
+  over-exposed); :func:`frame_window` gives the stretch of a run of frames.
 """
 
 from __future__ import annotations
@@ -172,6 +172,21 @@ def _altered(img: np.ndarray, kind: str) -> np.ndarray:
     if kind == "blur":
         return cv2.filter2D(img, -1, np.full((1, 15), 1.0 / 15, np.float32))
     return np.clip(img.astype(np.float64) * 2.2, 0, 255).astype(img.dtype)
+
+
+def frame_window(root: str | Path, first: int, n: int) -> tuple[float, float]:
+    """(t_s, dur_s) after the folder's first IMU sample that take in exactly cam0 frames
+    ``first`` .. ``first + n - 1`` (halfway to the neighbouring frames; ``n`` is cut at the
+    last frame)."""
+    mav0 = find_mav0(root)
+    t_cam = [t for t in map(_stamp, (mav0 / "cam0" / "data.csv").read_text().splitlines()) if t is not None]
+    i, j = first, min(first + n, len(t_cam))
+    if not 0 <= i < j:
+        raise ValueError(f"{mav0}: frames {i}..{j} outside its {len(t_cam)} cam0 frames")
+    lo = (t_cam[i] + t_cam[i - 1]) / 2 if i > 0 else t_cam[i] - 1
+    hi = (t_cam[j - 1] + t_cam[j]) / 2 if j < len(t_cam) else t_cam[-1] + 1
+    t0 = _t0(mav0)
+    return (lo - t0) * 1e-9, (hi - lo) * 1e-9
 
 
 def image_fault(root: str | Path, cam: str, t_s: float, dur_s: float, kind: str,
