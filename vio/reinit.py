@@ -13,20 +13,29 @@ mid-flight initializer: scale, gravity, velocity and biases from the buffer alon
 the start of a run (``InitConfig.dynamic``: window, retries, maximum window, after which
 the window slides on and its first frame's output becomes the reference). When it
 succeeds, a new estimator starts at the buffer's first frame with the aligned state, moved
-to the restart's position and yaw (the world frame is kept; roll, pitch, velocity and
-biases are the alignment's), replays the buffer without emitting, and takes over. The
+to that frame's output position and to the restart's yaw carried there by the gyro (the
+world frame is kept; roll, pitch, velocity and biases are the alignment's), replays the
+buffer without emitting, and takes over. The
 outputs already given stay; the next one continues from the new estimator, so the output
 steps by what the soft restart had drifted over the buffer (about 1.5 s). Extrinsic and td
 carry over; the counters (restarts, recoveries, bridged gaps) continue.
 ``HealthConfig.reinit`` switches it off.
 
+A stereo rig's buffer is aligned as its start is, by the stereo-inertial alignment
+(``vio.backend.stereo_init``, 0.5 s from the first frame matched in cam1, no excitation
+needed); with no buffered frame matched in cam1 (the right camera lost) the dynamic
+alignment of the left camera's tracks is used instead. Real MH_01 stereo with forced
+restarts (``max_speed: 0.6``, 3 restarts): 8.7 mm by the dynamic alignment, 6.0 mm by the
+stereo one (clean 6.4 mm); at constant velocity the dynamic alignment is refused for good.
+The yaw comes from the restart, not from the output at the buffer's first frame: the
+restarted window's estimate can still swing there (a 6 m/s^2 accelerometer fault on a
+constant-velocity render: the velocity turned by ~90 degrees, 1.07 m against 0.40 m
+with the restart's yaw and 0.37 m without re-initialization).
+
 The photometric modes (``Pipeline.sources_factory`` set by ``vio.direct.mode``) buffer
 from the packet after the restart (the restart's own features are the restarted window's
-projected points): direct mode runs its KLT stage again meanwhile, and the buffer is
-aligned as their start is, by the stereo-inertial alignment (``vio.backend.stereo_init``,
-0.5 s, no excitation needed); the new estimator gets a fresh photometric source before its
-first keyframe; with no buffered frame matched in cam1 (the right camera lost) the
-dynamic alignment of the left camera's tracks is used instead. Real MH_01 direct
+projected points): direct mode runs its KLT stage again meanwhile, and the new estimator
+gets a fresh photometric source before its first keyframe. Real MH_01 direct
 (benchmarks/README.md, stop 56): windows that ran off
 (points placed 3-5 keyframes back with the right camera covered; the IMU prediction as
 each keyframe's guess) 6.4 m / 7.2 m / 43 m -> 1.10 / 0.39 / 0.32 m; the restarts the soft
@@ -79,6 +88,8 @@ class Reinit:
         self.pipe = pipe
         self.buf: list = []                      # packets since the restart
         self.outs: list = []                     # their outputs (FrameOutput)
+        self.atts: list = []                     # their attitudes carried by the gyro (Rot3, R_w_b)
+        self._att: tuple | None = None           # (t_ns, R_w_b, gyro bias) the gyro has reached
         self.active = False                      # buffering since a restart
         self.method = "dynamic"                  # the alignment of the last try
         self._seen = 0
@@ -94,46 +105,74 @@ class Reinit:
             return
         if est.divergences > self._seen:        # a soft restart at this packet: buffer from here
             self._seen = est.divergences
+            rs = est.restart_state
+            self._att = (rs.t_ns, rs.T_w_b.rotation(), np.asarray(rs.bias.gyroscope(), float))
             # the photometric modes' restart packet carries the restarted window's projected
             # points as features (vio.direct.mode): their buffer starts at the next packet
-            self.buf, self.outs = ([], []) if sources is not None else ([pkt], [out])
+            first = sources is None
+            self.buf, self.outs, self.atts = [pkt] * first, [out] * first, [rs.T_w_b.rotation()] * first
             self._next_try, self.active = None, True
             return
         if not self.active:
             return
         if pkt.imu_gaps:                         # no alignment across a gap
-            self.buf, self.outs, self.active = [], [], False
+            self.buf, self.outs, self.atts, self.active = [], [], [], False
             return
         self.buf.append(pkt)
         self.outs.append(out)
+        self.atts.append(self._carry(pkt))
         res, span = self._align()
         if res is None:
             return
         if res.ok:
-            self._switch(moved_to(res.state, self.outs[0].T_w_b), span)
-            self.buf, self.outs, self.active = [], [], False
+            self._switch(moved_to(res.state, gtsam.Pose3(self.atts[0], self.outs[0].T_w_b.translation())), span)
+            self.buf, self.outs, self.atts, self.active = [], [], [], False
             return
         log.info("re-initialization over %.2f s not yet possible: %s", span, res.reason)
         dc = pipe.cfg.backend.init.dynamic
         if span + dc.retry_s > dc.max_window_s + 1e-6:   # as at the start: slide the window on
             keep = self.buf[-1].t_ns - int(dc.window_s * 0.7e9)
             i = next(j for j, p in enumerate(self.buf) if p.t_ns >= keep)
-            self.buf, self.outs, self._next_try = self.buf[i:], self.outs[i:], None
+            self._keep(i)
+            self._next_try = None
         else:
             self._next_try = pkt.t_ns + int(dc.retry_s * 1e9)
 
+    def _carry(self, pkt) -> gtsam.Rot3:
+        """The restart's attitude carried by the gyro (its bias at the restart, midpoint
+        rule) to ``pkt``: the yaw reference of the re-initialized window. The soft restart
+        takes its attitude from the last healthy keyframe by the same gyro, but its
+        window's estimate at the buffer's first frame can still swing while it settles
+        (a 6 m/s^2 accelerometer fault on a constant-velocity render: 90 degrees)."""
+        t, R, bg = self._att
+        imu = pkt.imu
+        m = imu.t_ns > t
+        if m.any():
+            ts, g = np.r_[t, imu.t_ns[m]], imu.gyro[m]
+            wm = 0.5 * (np.vstack([g[:1], g[:-1]]) + g) - bg
+            for dt, w in zip(np.diff(ts) * 1e-9, wm):
+                R = R.compose(gtsam.Rot3.Expmap(w * dt))
+            t = int(ts[-1])
+        self._att = (t, R, bg)
+        return R
+
+    def _keep(self, i: int) -> None:
+        """Drop the buffer's first ``i`` packets."""
+        self.buf, self.outs, self.atts = self.buf[i:], self.outs[i:], self.atts[i:]
+
     def _align(self):
         """(alignment result or None while the buffer is too short or waits for its next
-        try, the buffer's span in s). The photometric modes align their buffer's stereo
-        KLT frames as their start does (``vio.backend.stereo_init``), from the first frame
-        matched in cam1 (the buffer is cut there); with no frame matched (the right camera
-        lost) and the other modes, the dynamic alignment."""
+        try, the buffer's span in s). A stereo rig aligns its buffer's KLT frames as its
+        start does (``vio.backend.stereo_init``), from the first frame matched in cam1 (the
+        buffer is cut there); with no frame matched (the right camera lost) and a monocular
+        rig, the dynamic alignment."""
         pipe, buf = self.pipe, self.buf
         first = None
-        if pipe.sources_factory is not None and pipe.est.T_c0_c1 is not None:
+        if pipe.est.T_c0_c1 is not None and pipe.cfg.backend.init.stereo.enabled:
             first = next((i for i, p in enumerate(buf) if p.stereo_matched), None)
         if first is not None:
-            del buf[:first], self.outs[:first]
+            self._keep(first)
+            buf = self.buf
         self.method = "dynamic" if first is None else "stereo"
         ic = pipe.cfg.backend.init
         window = ic.dynamic.window_s if first is None else ic.stereo.window_s - 1e-6

@@ -60,6 +60,7 @@ class Estimator:
         self.bridged = 0          # keyframe intervals bridged across IMU gaps
         self.realigned = 0        # gravity re-alignments after a gap (vio.backend.realign)
         self.divergences = 0      # soft restarts after a divergence
+        self.restart_state: InitialState | None = None   # the last soft restart's state (vio.reinit)
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
         self.reiterations = 0     # updates iterated again (SolverConfig.reiterate_chi2)
         self._td_anchor = 0.0     # the td its keyframe time held at the last (re)start (s)

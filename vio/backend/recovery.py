@@ -91,6 +91,7 @@ def check_health(est, t_ns: int, n_removed: int, f_imu: gtsam.CombinedImuFactor)
         nav, b0, (T_b_c, td) = fb
     p = T.translation() if np.all(np.isfinite(T.translation())) else nav.position()
     state = InitialState(t_ns, gtsam.Pose3(nav.attitude(), p), nav.velocity(), b0, "restart")
+    est.restart_state = state
     h = est.cfg.health
     init = dataclasses.replace(est.cfg.init, prior_rp_sigma=h.restart_rp_sigma,
                                prior_vel_sigma=h.restart_vel_sigma,
