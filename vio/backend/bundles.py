@@ -48,7 +48,7 @@ from factors import landmark_schur
 from factors.bearing_model import tangent_basis
 from vio.backend import graph
 from vio.backend.health import outlier_limit_px
-from vio.backend.landmarks import Track
+from vio.backend.landmarks import Track, anchor_points
 from vio.backend.tracks import LandmarkManager
 
 _EYE4, _EYE6 = np.eye(4), np.eye(6)
@@ -344,14 +344,10 @@ class EliminatedLandmarks(LandmarkManager):
     def points_w(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
         """Ids (N,) and world points (N, 3) of the landmarks in the factors."""
         self._sync()
-        pts, ids = [], []
         cams = graph.anchor_cameras(values, {tr.anchor for tr in self.tracks.values() if tr.key is not None})
-        for tr in self.tracks.values():
-            if tr.key is None or tr.lam <= 0 or tr.anchor not in cams:
-                continue
-            pts.append(tr.anchor_point(cams[tr.anchor], tr.lam))
-            ids.append(tr.lid)
-        return np.array(ids, dtype=np.int64), np.array(pts).reshape(-1, 3)
+        sel = [tr for tr in self.tracks.values() if tr.key is not None and tr.lam > 0 and tr.anchor in cams]
+        return (np.array([tr.lid for tr in sel], dtype=np.int64),
+                anchor_points(sel, np.array([tr.lam for tr in sel]), cams))
 
 
 def _warm_up() -> None:

@@ -89,6 +89,17 @@ class Track:
         return T_w_c.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
 
 
+def anchor_points(tracks: list[Track], lams: np.ndarray, cams: dict[int, gtsam.Pose3]) -> np.ndarray:
+    """World points (N, 3) of ``tracks`` at inverse depths ``lams`` (N,) 1/m:
+    :meth:`Track.anchor_point` of each, its anchor camera ``cams[track.anchor]`` (T_w_c)."""
+    if not tracks:
+        return np.zeros((0, 3))
+    M = {f: cams[f].matrix() for f in {tr.anchor for tr in tracks}}
+    A = np.array([M[tr.anchor] for tr in tracks])
+    ray = np.array([(*tr.obs[tr.anchor].uv, 1.0) for tr in tracks]) / np.asarray(lams, float)[:, None]
+    return np.einsum("nij,nj->ni", A[:, :3, :3], ray) + A[:, :3, 3]
+
+
 def bearing_depth(anchor_uv: np.ndarray, T_w_ca: gtsam.Pose3,
                   others: list[tuple[np.ndarray, gtsam.Pose3]]) -> tuple[float, float]:
     """Depth along the anchor ray (z in the anchor camera, m) by linear least squares

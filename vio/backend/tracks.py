@@ -19,7 +19,7 @@ import numpy as np
 
 from factors.stack import Member
 from vio.backend import graph, health
-from vio.backend.landmarks import Obs, Track, bearing_depth, stereo_depth
+from vio.backend.landmarks import Obs, Track, anchor_points, bearing_depth, stereo_depth
 from vio.backend.point_tracks import PointTracks
 from vio.backend.kernels import compile_kernels
 from vio.backend.track_arrays import compile_kernel
@@ -326,16 +326,13 @@ class LandmarkManager(TrackFactorBuilder):
 
     def points_w(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
         """Ids (N,) and world points (N, 3) of the tracks in the graph."""
-        pts, ids = [], []
         cams = graph.anchor_cameras(values, {tr.anchor for tr in self.tracks.values() if tr.key is not None})
-        for tr in self.tracks.values():
-            if tr.key is None or not values.exists(tr.key) or tr.anchor not in cams:
-                continue
-            lam = float(values.atVector(tr.key)[0])
-            if lam <= 0:
-                continue
-            pts.append(tr.anchor_point(cams[tr.anchor], lam))
-            ids.append(tr.lid)
+        sel = [tr for tr in self.tracks.values()
+               if tr.key is not None and tr.anchor in cams and values.exists(tr.key)]
+        lams = np.array([values.atVector(tr.key)[0] for tr in sel], float)
+        keep = lams > 0
+        sel = [tr for tr, k in zip(sel, keep) if k]
         pids, ppts = self.points.points_w(values)
-        return np.array(ids + pids, dtype=np.int64), np.array(pts + ppts).reshape(-1, 3)
+        return (np.array([tr.lid for tr in sel] + pids, dtype=np.int64),
+                np.vstack([anchor_points(sel, lams[keep], cams), np.array(ppts).reshape(-1, 3)]))
 
