@@ -44,22 +44,6 @@ SHARED = ROOT.parent / "shared" / "data"
 V1_01 = SHARED / "euroc_V1_01_30s_features"
 
 
-def _offset(root: Path, t_s: float, dur_s: float, accel: float) -> None:
-    """Add ``accel`` m/s^2 to the accelerometer x of ``[t_s, t_s + dur_s)`` (passes the screen)."""
-    path = root / "mav0" / "imu0" / "data.csv"
-    lines, t0 = path.read_text().splitlines(keepends=True), None
-    out = []
-    for line in lines:
-        if line[:1].isdigit():
-            v = line.strip().split(",")
-            t0 = int(v[0]) if t0 is None else t0
-            if t_s * 1e9 <= int(v[0]) - t0 < (t_s + dur_s) * 1e9:
-                v[4] = repr(float(v[4]) + accel)
-            line = ",".join(v) + "\n"
-        out.append(line)
-    path.write_text("".join(out))
-
-
 def scenarios(at: float) -> list[tuple[str, object]]:
     return [
         ("clean", lambda r: None),
@@ -70,7 +54,7 @@ def scenarios(at: float) -> list[tuple[str, object]]:
         ("camera frames dropped 0.5 s", lambda r: inject.drop_frames(r, at, 0.5)),
         ("gap 0.5 s + spike + drops", lambda r: (inject.imu_gap(r, at, 0.5), inject.imu_spike(
             r, at + 3, accel=(0.0, -150.0, 0.0)), inject.drop_frames(r, at + 6, 0.3))),
-        ("accel offset +6 m/s^2 for 1 s", lambda r: _offset(r, at, 1.0, 6.0)),
+        ("accel offset +6 m/s^2 for 1 s", lambda r: inject.imu_offset(r, at, 1.0, (6.0, 0.0, 0.0))),
     ]
 
 

@@ -104,3 +104,47 @@ def test_gyro_rotation_factor_holds_the_relative_attitude_and_frees_the_translat
     vals.update(X(1), gtsam.Pose3(T0.rotation().compose(pim.deltaRij()).compose(gtsam.Rot3.Rx(0.01)),
                                   np.zeros(3)))
     assert f.error(vals) > 10.0                      # 0.01 rad against sigmas below 1e-3 rad
+
+
+def _contradiction_case(pred_offset: gtsam.Pose3, n_jumped: int = 0):
+    """A stand-in ``Estimator`` with 20 window landmarks, the new keyframe's observations of
+    them from the true pose (``n_jumped`` tracks moved by 25-50 px), and the IMU prediction
+    ``pred_offset`` away from the truth."""
+    from types import SimpleNamespace
+    from vio.backend.config import BackendConfig
+    rng = np.random.default_rng(7)
+    T_b_c = gtsam.Pose3(gtsam.Rot3.Ypr(-1.57, 0.0, -1.57), np.array([0.05, -0.02, 0.01]))
+    T_w_b = gtsam.Pose3(gtsam.Rot3.Ypr(0.4, 0.1, -0.05), np.array([1.0, 2.0, 1.5]))
+    T_w_c = T_w_b.compose(T_b_c)
+    p_w = np.array([T_w_c.transformFrom(np.r_[rng.uniform(-1, 1, 2), 1.0] * rng.uniform(2, 6)) for _ in range(20)])
+    fr = _frame(T_w_c, p_w, 0.3 / 460, rng)
+    uv = fr.uv.copy()
+    uv[:n_jumped] += rng.choice([-1.0, 1.0], (n_jumped, 2)) * rng.uniform(0.04, 0.08, (n_jumped, 2))
+    fr = FeatureFrame(0, fr.ids, uv, fr.velocity, fr.row)
+    est = SimpleNamespace(cfg=BackendConfig(), cam=SimpleNamespace(intrinsics=np.array([460.0, 460.0, 376.0, 240.0])),
+                          landmarks_w=lambda: (np.arange(20), p_w), extrinsic=lambda: T_b_c, k=4,
+                          contradicted_k=None, imu_contradictions=0)
+    pred = gtsam.NavState(T_w_b.compose(pred_offset), np.array([0.7, 0.0, 0.0]))
+    return est, fr, pred, T_w_b
+
+
+def test_vision_contradicting_the_imu_prediction_gives_the_pnp_pose():
+    """``bridge.imu_contradicted``: a prediction 12 cm off re-projects none of the
+    observations within ``outlier_px`` while PnP explains them all: the PnP pose is returned
+    and the interval counted. A prediction within a few pixels, one whose error is 1.5 deg
+    and 1 cm (below ``imu_check_min_deg`` / ``_min_m``: an attitude that has not settled,
+    as right after an initialization), and observations PnP explains only 60 % of (8 of
+    20 jumped) leave the IMU factor in."""
+    from vio.backend.bridge import imu_contradicted
+    est, fr, pred, T_w_b = _contradiction_case(gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])))
+    T = imu_contradicted(est, fr, pred)
+    assert T is not None and np.linalg.norm(T.translation() - T_w_b.translation()) < 0.01
+    assert est.imu_contradictions == 1 and est.contradicted_k == 5
+    for off, jumped in [(gtsam.Pose3(gtsam.Rot3.Rz(0.002), np.array([0.004, 0.0, 0.0])), 0),
+                        (gtsam.Pose3(gtsam.Rot3.Rz(0.026), np.array([0.01, 0.0, 0.0])), 0),
+                        (gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])), 8)]:
+        est, fr, pred, _ = _contradiction_case(off, jumped)
+        assert imu_contradicted(est, fr, pred) is None and est.imu_contradictions == 0
+    est, fr, pred, _ = _contradiction_case(gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])))
+    est.cfg = est.cfg.__class__(bridge=est.cfg.bridge.__class__(imu_check=False))
+    assert imu_contradicted(est, fr, pred) is None

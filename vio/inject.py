@@ -8,6 +8,8 @@ like the original. Times are seconds relative to the first IMU sample of the sou
 - :func:`copy_dataset` copies a folder (optionally cut to ``[start_s, end_s]``);
 - :func:`imu_gap` removes the IMU rows of ``[t_s, t_s + dur_s)``;
 - :func:`imu_spike` overwrites the accelerometer/gyro of the row nearest ``t_s``;
+- :func:`imu_offset` adds a constant to the accelerometer over a stretch (a bias step that
+  passes the sample screen);
 - :func:`drop_frames` removes the camera frames (and their feature rows) of a stretch;
 - :func:`shift_camera_stamps` moves every camera stamp, as a camera-IMU time offset does;
 - :func:`image_fault` alters a camera's images over a stretch (covered, black, blurred,
@@ -127,13 +129,40 @@ def imu_spike(root: str | Path, t_s: float, accel: tuple[float, float, float] | 
     return target
 
 
+def imu_offset(root: str | Path, t_s: float, dur_s: float, accel: tuple[float, float, float],
+               t0_ns: int | None = None) -> int:
+    """Add ``accel`` (3,) m/s^2 to the accelerometer readings of ``[t_s, t_s + dur_s)`` s
+    after ``t0_ns`` (default: the folder's first IMU sample). Returns the rows changed."""
+    mav0 = find_mav0(root)
+    t0 = _t0(mav0) if t0_ns is None else t0_ns
+    lo, hi = t0 + int(round(t_s * 1e9)), t0 + int(round((t_s + dur_s) * 1e9))
+    n = 0
+
+    def edit(t: int, line: str) -> str:
+        nonlocal n
+        if not lo <= t < hi:
+            return line
+        vals = line.strip().split(",")
+        for i, a in enumerate(accel):
+            if a:
+                vals[4 + i] = repr(float(vals[4 + i]) + float(a))
+        n += 1
+        return ",".join(vals) + "\n"
+
+    _edit_csv(mav0 / "imu0" / "data.csv", edit)
+    return n
+
+
 def drop_frames(root: str | Path, t_s: float, dur_s: float, t0_ns: int | None = None) -> int:
     """Remove the camera frames with stamps in ``[t_s, t_s + dur_s)`` (both cameras,
     their feature rows too). Returns the number of cam0 frames removed."""
     mav0 = find_mav0(root)
     t0 = _t0(mav0) if t0_ns is None else t0_ns
     lo, hi = t0 + int(round(t_s * 1e9)), t0 + int(round((t_s + dur_s) * 1e9))
-    keep = (lambda t, line: None if lo <= t < hi else line)
+
+    def keep(t: int, line: str) -> str | None:
+        return None if lo <= t < hi else line
+
     n = _edit_csv(mav0 / "cam0" / "data.csv", keep)
     for p in (mav0 / "cam0" / "features.csv", mav0 / "cam1" / "data.csv"):
         _edit_csv(p, keep)

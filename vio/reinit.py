@@ -67,7 +67,7 @@ from vio.backend.stereo_init import stereo_align
 log = logging.getLogger(__name__)
 
 COUNTERS = ("divergences", "recoveries", "qr_resolves", "point_holds", "bridged", "realigned", "td_reanchors",
-            "reiterations", "t_start")
+            "reiterations", "imu_contradictions", "t_start")
 
 
 def moved_to(state: InitialState, T_ref: gtsam.Pose3) -> InitialState:

@@ -49,6 +49,8 @@ class RunResult:
     """Gravity re-alignments after a long IMU gap (``vio.backend.realign``)."""
     reiterations: int = 0
     """Keyframe updates iterated again after an overshoot (``SolverConfig.reiterate_chi2``)."""
+    imu_contradicted: int = 0
+    """Keyframe intervals whose IMU readings vision contradicted, bridged (``BridgeConfig.imu_check``)."""
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
     imu_dropped: int = 0
@@ -301,6 +303,7 @@ def _counters(res: RunResult, pipe, live: bool) -> None:
     res.reinits = pipe.reinit.count
     res.realigns = pipe.est.realigned
     res.reiterations = pipe.est.reiterations
+    res.imu_contradicted = pipe.est.imu_contradictions
     res.qr_resolves = pipe.est.qr_resolves
     res.point_holds = pipe.est.point_holds
     res.imu_gaps = len(pipe.imu_gaps)
@@ -341,6 +344,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
              + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
                 if res.frames_dropped else "")
+             + (f", {res.imu_contradicted} IMU interval(s) contradicted by vision, bridged"
+                if res.imu_contradicted else "")
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
              + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
              + (f", {res.reiterations} update(s) iterated again" if res.reiterations else "")]

@@ -60,6 +60,8 @@ class Estimator:
         self.bridged = 0          # keyframe intervals bridged across IMU gaps
         self.realigned = 0        # gravity re-alignments after a gap (vio.backend.realign)
         self.divergences = 0      # soft restarts after a divergence
+        self.imu_contradictions = 0   # keyframe intervals whose IMU vision contradicted (bridged)
+        self.contradicted_k: int | None = None   # the last keyframe such an interval ended at
         self.restart_state: InitialState | None = None   # the last soft restart's state (vio.reinit)
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
         self.reiterations = 0     # updates iterated again (SolverConfig.reiterate_chi2)
@@ -220,10 +222,13 @@ class Estimator:
         k0, k1 = self.k, self.k + 1
         div0 = self.divergences
         pred = self.predict()
-        _, _, b0 = self.latest()
+        _, v0, b0 = self.latest()
+        T_pnp = bridge.imu_contradicted(self, features, pred) if self._bridge_t is None else None
+        if T_pnp is not None:      # the velocity the motion prior carries on
+            pred = gtsam.NavState(T_pnp, v0)
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        fs, held = bridge.motion_factors(self, k0, k1, t_ns)
+        fs, held = bridge.motion_factors(self, k0, k1, t_ns, T_pnp is not None)
         f_imu = fs[0]
         for f in fs:
             g.add(f)

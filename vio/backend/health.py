@@ -94,6 +94,12 @@ class BridgeConfig:
     least ``pnp_min_inliers`` inliers, and the observations it rejects are left out
     (where PnP fails, those farther than ``pred_gate_px`` from the prediction); the
     outlier check's limit is ``outlier_scale`` times wider (:func:`outlier_limit_px`).
+    ``imu_check``: an interval whose IMU prediction re-projects at most
+    ``imu_check_max_frac`` of the new keyframe's observations of window landmarks within
+    ``VisionConfig.outlier_px``, while RANSAC PnP on those landmarks explains at least
+    ``imu_check_min_frac`` of them (and ``imu_check_min_inliers``) at a pose
+    ``imu_check_min_m`` or ``imu_check_min_deg`` away from the prediction, is bridged as a
+    gap is: its IMU readings contradict vision (``vio.backend.bridge.imu_contradicted``).
     (Until stop 38 the preintegrated still readings were the factor too; their gravity
     term tied position to attitude: position sigma 0.28 m over 0.5 s, 17 m over 3 s.)"""
 
@@ -104,10 +110,17 @@ class BridgeConfig:
     pnp_min_inliers: int = 6
     pred_gate_px: float = 10.0
     outlier_scale: float = 2.0
+    imu_check: bool = True
+    imu_check_max_frac: float = 0.2
+    imu_check_min_frac: float = 0.7
+    imu_check_min_inliers: int = 10
+    imu_check_min_m: float = 0.05
+    imu_check_min_deg: float = 2.0
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("accel_density", "gyro_density", "step_s", "pnp_min_inliers", "pred_gate_px",
-                                     "outlier_scale"))
+                                     "outlier_scale", "imu_check_min_inliers", "imu_check_min_m", "imu_check_min_deg"),
+                     fractions=("imu_check_max_frac", "imu_check_min_frac"))
 
 
 @dataclass(frozen=True)
