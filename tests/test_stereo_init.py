@@ -184,16 +184,18 @@ def test_accelerometer_offset_contradicted_by_stereo_vision_is_bridged(cv_stereo
     """+6 m/s^2 on the accelerometer for 0.5 s of the constant-velocity pass: vision
     contradicts the IMU prediction, those keyframe intervals get the motion prior instead
     of their IMU factor (``BridgeConfig.imu_check``) with a warning, and the run stays at
-    centimetres (measured 0.015 m; clean 0.009 m; with the IMU factors kept 0.98 m and no
-    warning, the landmarks' observations failing the outlier check)."""
+    centimetres (measured 0.015 m, stereo mode's defaults; 0.040 m with the generic
+    ``PipelineConfig``; clean 0.009 m; with the IMU factors kept 0.98 m and no warning,
+    the landmarks' observations failing the outlier check)."""
     import logging
     from vio.inject import copy_dataset, imu_offset
     from vio.io.euroc import load_euroc
+    from vio.run import default_config
     root = copy_dataset(cv_stereo.root, tmp_path / "off")
     assert imu_offset(root, 1.0, 0.5, (6.0, 0.0, 0.0)) == 100
     data = load_euroc(root)
     with caplog.at_level(logging.WARNING, logger="vio.backend.bridge"):
-        res = run_dataset(data, PipelineConfig(), mode="stereo")
+        res = run_dataset(data, default_config("stereo"), mode="stereo")
     assert res.imu_contradicted >= 1 and "contradict vision" in caplog.text and res.restarts == 0
     assert len(res.outputs) == len(data.cam0.t_ns)
     e = evaluate(*res.arrays(), data.groundtruth)

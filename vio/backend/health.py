@@ -114,7 +114,7 @@ class BridgeConfig:
     imu_check_max_frac: float = 0.2
     imu_check_min_frac: float = 0.7
     imu_check_min_inliers: int = 10
-    imu_check_min_m: float = 0.05
+    imu_check_min_m: float = 0.03
     imu_check_min_deg: float = 2.0
 
     def __post_init__(self) -> None:
