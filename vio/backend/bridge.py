@@ -25,9 +25,9 @@ bridged the same way once vision contradicts them (:func:`imu_contradicted`,
 ``BridgeConfig.imu_check``): the keyframe interval gets the motion prior instead of its
 IMU factor, the keyframe starts at the PnP pose with the previous keyframe's velocity,
 and a warning names the keyframes. Left in, a 6 m/s^2 offset for 1 s outweighs the
-Huber-weighted landmarks, whose observations then fail the outlier check: real MH_01
-stereo / hybrid and real MH_05 mono (offset at 4 / 9 s) 0.67 / 0.39, 0.62 / 0.96 and
-3.6 / 15.0 m; bridged 0.022 / 0.008, 0.017 / 0.022 and 0.87 / 0.056 m.
+Huber-weighted landmarks, whose observations then fail the outlier check: at five places
+of real MH_01 stereo / hybrid and real MH_05 mono 205-659 mm / 0.96-4.4 m / 2.4-7.7 m;
+bridged 8-17 mm / 7-15 mm / 0.07-1.7 m (``benchmarks/README.md``, stop 57).
 """
 
 from __future__ import annotations
