@@ -67,7 +67,8 @@ def test_stereo_mode_reinitializes_by_the_stereo_alignment(caplog):
     data = load_euroc(shared("euroc_MH_01_stereo_synimu"))
     cfg = default_config("stereo")
     be = cfg.backend
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(be, health=dataclasses.replace(be.health, max_speed=0.6)))
+    health = dataclasses.replace(be.health, max_speed=0.6)
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(be, health=health))
     with caplog.at_level(logging.WARNING, logger="vio.reinit"):
         res = run_dataset(data, cfg, max_frames=240, mode="stereo")
     assert res.restarts >= 2 and res.reinits == res.restarts

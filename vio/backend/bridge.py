@@ -98,6 +98,25 @@ def motion_factors(est, k0: int, k1: int, t_ns: int, contradicted: bool = False)
     return fs, True
 
 
+def replace_imu_factor(est, g: gtsam.NonlinearFactorGraph, k0: int, k1: int, t_ns: int) -> list:
+    """Keyframe k1's interval bridged after all: its IMU factor, ``g``'s first factor, replaced
+    by :func:`bridge_factors` (the motion prior in its slot, the bias walk appended, so the
+    positions the other factors recorded hold), when a factor source's own alignment
+    contradicted the IMU (``FactorSource.imu_contradicted``: direct mode's TrackFrame).
+    Counts the interval and warns as :func:`imu_contradicted` does; returns the factors."""
+    bc = est.cfg.bridge
+    fs = bridge_factors(k0, k1, (t_ns - est.kf_t[k0]) * 1e-9, bc.accel_density, bc.gyro_density, est.bias_walk)
+    g.replace(0, fs[0])
+    for f in fs[1:]:
+        g.add(f)
+    est.imu_contradictions += 1
+    (log.warning if est.contradicted_k != k0 else log.info)(
+        "keyframes %d-%d: the photometric alignment contradicts the IMU prediction: the interval's IMU "
+        "readings are not used (motion prior instead; interval #%d)", k0, k1, est.imu_contradictions)
+    est.contradicted_k, est.contradicted_t = k1, t_ns
+    return fs
+
+
 def _gated(pts: dict[int, np.ndarray], fr: FeatureFrame, T_w_c: gtsam.Pose3, thresh: float) -> FeatureFrame:
     """``fr`` without the observations of landmarks in ``pts`` (id -> world point) that
     camera pose ``T_w_c`` re-projects farther than ``thresh`` (normalized) or behind it."""
@@ -151,6 +170,25 @@ def gate_bridged(est, features: FeatureFrame, pred: gtsam.NavState,
              "its prediction); %d observation(s) left out", est.k + 1, len(ids),
              float(np.linalg.norm(T.translation() - pred.pose().translation())), dropped)
     return (pred if keep_pose else gtsam.NavState(T, pred.velocity())), out
+
+
+def within_hold(est, t_ns: int) -> bool:
+    """Whether an interval vision contradicted ended at most ``BridgeConfig.imu_check_hold_s``
+    before ``t_ns``."""
+    t = est.contradicted_t
+    return t is not None and t_ns - t <= est.cfg.bridge.imu_check_hold_s * 1e9
+
+
+def imu_held(est, t_ns: int) -> bool:
+    """Whether the interval ending at ``t_ns`` is bridged because it ends within the hold
+    (:func:`within_hold`); counted and logged."""
+    held = within_hold(est, t_ns)
+    t = est.contradicted_t
+    if held:
+        est.imu_contradictions += 1
+        log.info("keyframes %d-%d: held without the IMU factor (%.2f s after an interval vision contradicted; "
+                 "interval #%d)", est.k, est.k + 1, (t_ns - t) * 1e-9, est.imu_contradictions)
+    return held
 
 
 def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState) -> gtsam.Pose3 | None:

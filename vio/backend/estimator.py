@@ -62,6 +62,7 @@ class Estimator:
         self.divergences = 0      # soft restarts after a divergence
         self.imu_contradictions = 0   # keyframe intervals whose IMU vision contradicted (bridged)
         self.contradicted_k: int | None = None   # the last keyframe such an interval ended at
+        self.contradicted_t: int | None = None   # and its time (ns; BridgeConfig.imu_check_hold_s)
         self.restart_state: InitialState | None = None   # the last soft restart's state (vio.reinit)
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
         self.reiterations = 0     # updates iterated again (SolverConfig.reiterate_chi2)
@@ -224,11 +225,12 @@ class Estimator:
         pred = self.predict()
         _, v0, b0 = self.latest()
         T_pnp = bridge.imu_contradicted(self, features, pred) if self._bridge_t is None else None
-        if T_pnp is not None:      # the velocity the motion prior carries on
-            pred = gtsam.NavState(T_pnp, v0)
+        hold = T_pnp is not None or bridge.imu_held(self, t_ns)
+        if hold:                   # the velocity the motion prior carries on
+            pred = gtsam.NavState(pred.pose() if T_pnp is None else T_pnp, v0)
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        fs, held = bridge.motion_factors(self, k0, k1, t_ns, T_pnp is not None)
+        fs, held = bridge.motion_factors(self, k0, k1, t_ns, hold)
         f_imu = fs[0]
         for f in fs:
             g.add(f)
@@ -258,6 +260,12 @@ class Estimator:
         for src in self.sources:
             src.observe(k1, frame)
             removals += src.prepare_update(k1, pred, leaving, g, v, stamps)
+        if not held and any(src.imu_contradicted(k1) for src in self.sources):
+            f_imu, held = bridge.replace_imu_factor(self, g, k0, k1, t_ns)[0], True
+            self.bridged_kf.add(k1)
+            v.update(V(k1), v0)
+        elif hold and any(src.imu_contradicted(k1) for src in self.sources):
+            self.contradicted_t = t_ns            # the hold goes on from here
         recovered = False
         try:
             self._update(g, v, stamps, removals)

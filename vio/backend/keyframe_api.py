@@ -40,7 +40,10 @@ class FactorSource(Protocol):
     that have relinearization thresholds of their own (one per tangent dimension, in the
     variable's units; the others take ``SolverConfig.relinearize_threshold``). ``lost``
     (after keyframe ``k``'s update) names why the source's measurements have lost the
-    frames, or returns None: a divergence for the health monitor."""
+    frames, or returns None: a divergence for the health monitor. ``imu_contradicted``
+    (after ``prepare_update`` of keyframe ``k``): whether the source's own alignment found
+    the IMU prediction of the interval ending at ``k`` wrong; the estimator then bridges
+    that interval (``vio.backend.bridge.replace_imu_factor``)."""
 
     key_dims: dict[str, int]
     key_thresholds: dict[str, tuple[float, ...]]
@@ -57,3 +60,5 @@ class FactorSource(Protocol):
     def reset(self) -> None: ...
 
     def lost(self, k: int) -> str | None: ...
+
+    def imu_contradicted(self, k: int) -> bool: ...

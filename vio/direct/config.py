@@ -90,11 +90,11 @@ class LMConfig:
 class TrackConfig:
     """TrackFrame (seed Algorithm 3): coarse-to-fine direct alignment to a keyframe.
 
-    ``enabled``: run it at each keyframe (direct mode's failure signal); ``levels`` pyramid levels; ``iters`` max LM iterations per level, coarsest first
-    (one entry per level); ``sigma_I``, ``grad_c``: photometric weights
-    (factors.photometric); ``huber_k`` on the whitened residual; ``oob_residual``
-    whitened residual charged to a pattern pixel that leaves the image (so leaving is
-    never rewarded); ``min_valid_fraction`` of residuals inside at level 0 for ``ok``;
+    ``enabled``: run it at each keyframe (direct mode's failure signal); ``levels`` pyramid
+    levels; ``iters`` max LM iterations per level, coarsest first (one entry per level);
+    ``sigma_I``, ``grad_c``: photometric weights (factors.photometric); ``huber_k`` on the
+    whitened residual; ``oob_residual`` whitened residual charged to a pattern pixel that
+    leaves the image (so leaving is never rewarded); ``min_valid_fraction`` of residuals inside at level 0 for ``ok``;
     ``max_rmse`` (intensity units) for ``ok``; ``use_idepth_var`` includes the seed's
     (dr/drho)^2 V term. ``lm_*`` set the per-level ``LMConfig`` (Marquardt diagonal
     damping by default: pose and the intensity offset b have very different scales).
@@ -102,7 +102,10 @@ class TrackConfig:
     Gaussian prior of the alignment (``vio.direct.trackframe.MotionPrior``) with sigmas
     from the preintegration covariance, at least ``prior_rot_sigma`` (rad) and, for the
     translation, ``prior_trans_sigma`` (m) plus ``prior_vel_sigma`` (m/s, the previous
-    keyframe's velocity uncertainty) times the interval.
+    keyframe's velocity uncertainty) times the interval. ``retry_visual``: a failed
+    alignment runs once more without the prior from the previous interval's camera motion
+    (``vio.direct.imu_check``); converged far from the IMU prediction, the keyframe
+    interval's IMU is contradicted and bridged (``BridgeConfig.imu_check``).
     """
 
     enabled: bool = True
@@ -129,6 +132,7 @@ class TrackConfig:
     prior_rot_sigma: float = 0.0005
     prior_trans_sigma: float = 0.001
     prior_vel_sigma: float = 0.02
+    retry_visual: bool = True
 
     def __post_init__(self) -> None:
         if min(self.prior_rot_sigma, self.prior_trans_sigma) <= 0 or self.prior_vel_sigma < 0:

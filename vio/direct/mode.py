@@ -55,10 +55,14 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from factors.photometric import make_host_patch
+from factors.photometric_host import HostPoints, StereoHost, host_residual_fn
+from vio.backend.bridge import within_hold
 from vio.backend.tracks import LandmarkManager
-from vio.direct.keyframe import StereoRig
+from vio.direct.keyframe import StereoRig, build_keyframe
 from vio.direct.photocal import PhotoCalConfig, load_calibration
 from vio.direct.source import PhotometricSource
+from vio.direct.trackframe import MotionPrior, track_frame
 from vio.imu import integrate
 from vio.io.types import FeatureFrame
 from vio.sync import FramePacket
@@ -115,12 +119,13 @@ class DirectStage:
         # direct after initialization: no image is read here; the source reads a
         # keyframe's pair when it observes it (two PNG decodes per frame were ~20% of
         # direct mode's time on real MH_01, where 3 frames in 10 are keyframes)
-        if pkt.imu_gaps:
+        if pkt.imu_gaps or within_hold(est, pkt.t_ns):
             # across an IMU gap the predicted flow measures nothing (the packet's IMU is
             # interpolated over the gap): no flow points, so every frame past the minimum
             # interval is a keyframe and TrackFrame extrapolates over short intervals only
             # (real MH_01, 3-s gap 6 s in: keyframes every 0.3 s, TrackFrame failed at
-            # four of them and the estimate slid 0.49 m)
+            # four of them and the estimate slid 0.49 m). Likewise while the IMU is held
+            # out after vision contradicted it (BridgeConfig.imu_check_hold_s)
             return dataclasses.replace(pkt, features=FeatureFrame.empty(pkt.t_ns))
         return dataclasses.replace(pkt, features=self._flow_features(pkt))
 
@@ -189,7 +194,7 @@ def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
     if data.cam1 is None:
         raise ValueError(f"{data.root}: direct/hybrid mode needs a cam1 calibration")
     source = PhotometricSource(pipe.est, _rig(data, cfg.direct.photometric), cfg.direct)
-    source.warm_up()
+    _warm_up(source)
     pipe.est.sources.append(source)
     if not hybrid:
         pipe.est.lm = FeaturelessLandmarks(pipe.est)
@@ -200,3 +205,26 @@ def attach(pipe, data, cfg, hybrid: bool, klt: bool = True) -> DirectStage:
         if register is not None:
             register(lambda: stage.source.snapshot())
     return stage
+
+
+def _warm_up(source: PhotometricSource) -> None:
+    """Load (or compile) the Numba kernels of keyframe building, TrackFrame and the
+    host factor now, on a noise image pair of the cameras' size: their first calls
+    otherwise stall the first keyframes after initialization (~1.5 s to compile on
+    a fresh install, ~0.3 s to load from Numba's cache)."""
+    import cv2
+
+    w, h = source.rig.cam0.resolution
+    img = cv2.blur(np.random.default_rng(0).uniform(20, 230, (h, w)), (5, 5))   # smooth texture
+    kd = build_keyframe(-1, 0, img, img, source.rig, source.cfg)
+    if len(kd.uv) == 0:
+        return
+    track_frame(kd.reference(np.zeros(2), source.cfg), kd.image, gtsam.Pose3(), np.zeros(2),
+                source.cfg.track, MotionPrior(gtsam.Pose3(), 1e-3, 1e-3))
+    n = min(len(kd.uv), 8)
+    pts = HostPoints.create(make_host_patch(kd.left, kd.uv[:n], source.rig.K0), kd.idepth[:n],
+                            source.cfg.points.grad_c, source.cfg.points.max_targets)
+    stereo = StereoHost(kd.right._stack, source.rig.K1, source.rig.T_c1_c0, kd.ab_right)
+    # one signature serves every target count (the kernel gets the whole mask)
+    fn = host_residual_fn(pts, [kd.left._stack], source.rig.K0, source.rig.T_b_c, source.params, stereo)
+    fn([gtsam.Pose3(), np.zeros(2)] * 2)

@@ -47,12 +47,13 @@ import numpy as np
 
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch
-from factors.photometric_host import (HostParams, HostPoints, HostTiming, StereoHost, host_factor,
-                                      host_residual_fn)
+from factors.photometric_host import HostParams, HostPoints, HostTiming, StereoHost, host_factor
+from vio.backend.bridge import within_hold
 from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
+from vio.direct.imu_check import contradicts, pose_offset, window_guess
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
@@ -92,6 +93,7 @@ class PhotometricSource:
         self.twists: dict[int, np.ndarray] = {}   # body twist [omega_b, v_b] at insertion
         self.hosts: dict[int, Host] = {}
         self.tracks: list[TrackRecord] = []
+        self.contradicted_k: int | None = None   # the last keyframe TrackFrame found the IMU wrong at
         self.health = FactorHealth()
         self.n_factors_built = 0
         self._pending: list[tuple[Host, int]] = []
@@ -101,28 +103,6 @@ class PhotometricSource:
         self._levels: list[float] = []   # the window's median pair RMS at the last keyframes
         a, b = pc.affine_sigma
         self._ab_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, b]))
-
-    def warm_up(self) -> None:
-        """Load (or compile) the Numba kernels of keyframe building, TrackFrame and the
-        host factor now, on a noise image pair of the cameras' size: their first calls
-        otherwise stall the first keyframes after initialization (~1.5 s to compile on
-        a fresh install, ~0.3 s to load from Numba's cache)."""
-        import cv2
-
-        w, h = self.rig.cam0.resolution
-        img = cv2.blur(np.random.default_rng(0).uniform(20, 230, (h, w)), (5, 5))   # smooth texture
-        kd = build_keyframe(-1, 0, img, img, self.rig, self.cfg)
-        if len(kd.uv) == 0:
-            return
-        track_frame(kd.reference(np.zeros(2), self.cfg), kd.image, gtsam.Pose3(), np.zeros(2),
-                    self.cfg.track, MotionPrior(gtsam.Pose3(), 1e-3, 1e-3))
-        n = min(len(kd.uv), 8)
-        pts = HostPoints.create(make_host_patch(kd.left, kd.uv[:n], self.rig.K0), kd.idepth[:n],
-                                self.cfg.points.grad_c, self.cfg.points.max_targets)
-        stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
-        # one signature serves every target count (the kernel gets the whole mask)
-        fn = host_residual_fn(pts, [kd.left._stack], self.rig.K0, self.rig.T_b_c, self.params, stereo)
-        fn([gtsam.Pose3(), np.zeros(2)] * 2)
 
     # ------------------------------------------------------------- protocol
     def observe(self, k: int, frame) -> None:
@@ -264,15 +244,23 @@ class PhotometricSource:
         T_w_cp = vals.atPose3(X(prev.k)).compose(T_b_c)
         T_pred = v.atPose3(X(k))
         T_init = T_w_cp.between(T_pred.compose(T_b_c))
+        prior = self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9)
+        if within_hold(self.est, kd.t_ns):      # the IMU is suspect: neither its guess nor its prior
+            T_init, prior = window_guess(self.kfs, vals, prev, T_w_cp, T_b_c, kd.t_ns) or T_init, None
         t0 = time.perf_counter()
         try:
             res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), T_init, ab_p,
-                              self.cfg.track, self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9))
+                              self.cfg.track, prior)
         except (ArithmeticError, np.linalg.LinAlgError) as exc:   # a numerical failure is a failure
             res = None
             log.warning("TrackFrame failed at keyframe %d (%s: %s); IMU prediction kept", k,
                         type(exc).__name__, exc)
         ms = (time.perf_counter() - t0) * 1e3
+        if (res is None or not res.ok) and self.cfg.track.retry_visual:
+            ab = self._retry(k, kd, prev, ab_p, T_w_cp, v)
+            if ab is not None:
+                kd.release_pyramid()
+                return ab
         kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
         if res is None:
             self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
@@ -284,12 +272,53 @@ class PhotometricSource:
         d = T_pred.between(T_tr)
         dist, ang = float(np.linalg.norm(d.translation())), float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
+        if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, np.degrees(ang)):
+            used = True      # converged against the IMU prior, and still away from the prediction
         if used:
             v.update(X(k), T_tr)
         self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, res.ok, used, dist, ang, ms))
         if not res.ok:
             log.warning("TrackFrame failed at keyframe %d: rmse %.1f (IMU prediction kept)", k, res.rmse)
         return np.array([res.a, res.b]) if res.ok else ab_p
+
+    def _retry(self, k: int, kd: KeyframeData, prev: KeyframeData, ab_p: np.ndarray, T_w_cp: gtsam.Pose3,
+               v: gtsam.Values) -> np.ndarray | None:
+        """After a failed TrackFrame: once more without the IMU prior from the visual guess
+        (``vio.direct.imu_check``). Where it converges at least ``BridgeConfig.imu_check_min_m``
+        / ``_min_deg`` from the IMU prediction, the IMU is contradicted: its pose becomes
+        X(k)'s guess and the affine guess of A(k) is returned; else None."""
+        T_b_c = self.rig.T_b_c
+        guess = window_guess(self.kfs, self.est.values, prev, T_w_cp, T_b_c, kd.t_ns)
+        if not self.est.cfg.bridge.imu_check or guess is None:
+            return None
+        t0 = time.perf_counter()
+        try:
+            res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), guess, ab_p,
+                              self.cfg.track, None)
+        except (ArithmeticError, np.linalg.LinAlgError):
+            return None
+        if not res.ok:
+            return None
+        T_tr = pose_from_matrix(T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse()).matrix())
+        dist, ang = pose_offset(v.atPose3(X(k)), T_tr)
+        if not self._contradicts(k, dist, ang):
+            return None
+        v.update(X(k), T_tr)
+        self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, np.radians(ang),
+                                       (time.perf_counter() - t0) * 1e3))
+        return np.array([res.a, res.b])
+
+    def _contradicts(self, k: int, dist: float, ang_deg: float) -> bool:
+        """:func:`vio.direct.imu_check.contradicts`, recorded for :meth:`imu_contradicted`."""
+        if not contradicts(self.est.cfg.bridge, dist, ang_deg):
+            return False
+        self.contradicted_k = k
+        log.info("keyframe %d: TrackFrame converged %.3f m / %.2f deg from the IMU prediction", k, dist, ang_deg)
+        return True
+
+    def imu_contradicted(self, k: int) -> bool:
+        """Whether keyframe k's TrackFrame contradicted the IMU prediction (:meth:`_retry`)."""
+        return self.contradicted_k == k
 
     def _motion_prior(self, T_init: gtsam.Pose3, dt: float) -> MotionPrior | None:
         """The IMU prediction ``T_init`` (camera of the new keyframe in the previous one's,
