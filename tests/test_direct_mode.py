@@ -307,7 +307,7 @@ def test_accelerometer_offset_contradicted_by_trackframe_is_bridged(sim_exposure
     previous interval's camera motion where it fails against the IMU prior, converges away
     from the IMU prediction; the interval and those within ``imu_check_hold_s`` get the
     motion prior instead of their IMU factor (``vio.direct.imu_check``), and direct mode
-    stays at millimetres (measured 5.4 mm; clean 1.5 mm; without the check 1.21 m)."""
+    stays at millimetres (measured 3.6 mm; clean 1.5 mm; without the check 1.21 m)."""
     from vio.inject import copy_dataset, imu_offset
     root = copy_dataset(sim_exposure.root, tmp_path / "off")
     assert imu_offset(root, 1.5, 0.5, (6.0, 0.0, 0.0)) == 100

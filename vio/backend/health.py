@@ -104,7 +104,9 @@ class BridgeConfig:
     ``FactorSource.imu_contradicted``), the intervals ending within ``imu_check_hold_s`` of
     that interval's end are bridged too: over a short interval a wrong reading moves the
     predicted pose by little (6 m/s^2 for 0.05 s: 7.5 mm, under the limit) but the velocity
-    by much (0.3 m/s), which the next interval's prediction then carries. (After the
+    by much (0.3 m/s), which the next interval's prediction then carries. A held interval
+    whose alignment ends ``2 d / dt^2 >= imu_check_hold_accel`` (m/s^2) from the IMU's
+    prediction over it extends the hold. (After the
     landmark check the hold cost mono and features: real V1_01, offset at 4 s, 0.043 ->
     1.73 m; there each interval is checked on its own.)
     (Until stop 38 the preintegrated still readings were the factor too; their gravity
@@ -124,6 +126,7 @@ class BridgeConfig:
     imu_check_min_m: float = 0.03
     imu_check_min_deg: float = 2.0
     imu_check_hold_s: float = 0.3
+    imu_check_hold_accel: float = 3.0
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("accel_density", "gyro_density", "step_s", "pnp_min_inliers", "pred_gate_px",

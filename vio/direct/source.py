@@ -272,7 +272,7 @@ class PhotometricSource:
         d = T_pred.between(T_tr)
         dist, ang = float(np.linalg.norm(d.translation())), float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
-        if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, np.degrees(ang)):
+        if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, np.degrees(ang), kd.t_ns - prev.t_ns):
             used = True      # converged against the IMU prior, and still away from the prediction
         if used:
             v.update(X(k), T_tr)
@@ -301,20 +301,29 @@ class PhotometricSource:
             return None
         T_tr = pose_from_matrix(T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse()).matrix())
         dist, ang = pose_offset(v.atPose3(X(k)), T_tr)
-        if not self._contradicts(k, dist, ang):
+        if not self._contradicts(k, dist, ang, kd.t_ns - prev.t_ns):
             return None
         v.update(X(k), T_tr)
         self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, np.radians(ang),
                                        (time.perf_counter() - t0) * 1e3))
         return np.array([res.a, res.b])
 
-    def _contradicts(self, k: int, dist: float, ang_deg: float) -> bool:
-        """:func:`vio.direct.imu_check.contradicts`, recorded for :meth:`imu_contradicted`."""
-        if not contradicts(self.est.cfg.bridge, dist, ang_deg):
-            return False
-        self.contradicted_k = k
-        log.info("keyframe %d: TrackFrame converged %.3f m / %.2f deg from the IMU prediction", k, dist, ang_deg)
-        return True
+    def _contradicts(self, k: int, dist: float, ang_deg: float, dt_ns: int) -> bool:
+        """:func:`vio.direct.imu_check.contradicts` for keyframe k's converged TrackFrame,
+        ``dist`` m / ``ang_deg`` from the IMU prediction over ``dt_ns``; recorded for
+        :meth:`imu_contradicted`. While the IMU is held out the residual acceleration
+        ``2 dist / dt^2`` decides (``BridgeConfig.imu_check_hold_accel``): the held
+        intervals are short and the IMU's own error over one is a few mm."""
+        bc = self.est.cfg.bridge
+        if within_hold(self.est, self.kfs[k].t_ns):
+            hit = bc.imu_check and 2.0 * dist / max(dt_ns * 1e-9, 1e-3) ** 2 >= bc.imu_check_hold_accel
+        else:
+            hit = contradicts(bc, dist, ang_deg)
+        if hit:
+            self.contradicted_k = k
+            log.info("keyframe %d: TrackFrame converged %.3f m / %.2f deg from the IMU prediction over %.2f s",
+                     k, dist, ang_deg, dt_ns * 1e-9)
+        return hit
 
     def imu_contradicted(self, k: int) -> bool:
         """Whether keyframe k's TrackFrame contradicted the IMU prediction (:meth:`_retry`)."""
