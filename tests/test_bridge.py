@@ -131,10 +131,11 @@ def _contradiction_case(pred_offset: gtsam.Pose3, n_jumped: int = 0):
 def test_vision_contradicting_the_imu_prediction_gives_the_pnp_pose():
     """``bridge.imu_contradicted``: a prediction 12 cm off re-projects none of the
     observations within ``outlier_px`` while PnP explains them all: the PnP pose is returned
-    and the interval counted. A prediction within a few pixels, one whose error is 1.5 deg
-    and 1 cm (below ``imu_check_min_deg`` / ``_min_m``: an attitude that has not settled,
-    as right after an initialization), and observations PnP explains only 60 % of (8 of
-    20 jumped) leave the IMU factor in."""
+    and the interval counted. A prediction within a few pixels, one 1 cm off (below
+    ``imu_check_min_m``) with 1.5 deg of attitude error (as right after an
+    initialization), one 5 cm and 1.7 deg off (beyond ``imu_check_max_deg``: a timing
+    error, td or rolling shutter, not an accelerometer's), and observations PnP explains
+    only 60 % of (8 of 20 jumped) leave the IMU factor in."""
     from vio.backend.bridge import imu_contradicted
     est, fr, pred, T_w_b = _contradiction_case(gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])))
     T = imu_contradicted(est, fr, pred)
@@ -142,6 +143,7 @@ def test_vision_contradicting_the_imu_prediction_gives_the_pnp_pose():
     assert est.imu_contradictions == 1 and (est.contradicted_k, est.contradicted_t) == (5, None)
     for off, jumped in [(gtsam.Pose3(gtsam.Rot3.Rz(0.002), np.array([0.004, 0.0, 0.0])), 0),
                         (gtsam.Pose3(gtsam.Rot3.Rz(0.026), np.array([0.01, 0.0, 0.0])), 0),
+                        (gtsam.Pose3(gtsam.Rot3.Rz(0.03), np.array([0.05, 0.0, 0.0])), 0),
                         (gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])), 8)]:
         est, fr, pred, _ = _contradiction_case(off, jumped)
         assert imu_contradicted(est, fr, pred) is None and est.imu_contradictions == 0

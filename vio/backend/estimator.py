@@ -224,7 +224,8 @@ class Estimator:
         div0 = self.divergences
         pred = self.predict()
         _, v0, b0 = self.latest()
-        T_pnp = bridge.imu_contradicted(self, features, pred) if self._bridge_t is None else None
+        T_pnp = (bridge.imu_contradicted(self, features, pred, self._exposure_shift(pred, b0, gyro, frame, features))
+                 if self._bridge_t is None else None)
         hold = T_pnp is not None or bridge.imu_held(self, t_ns)
         if hold:                   # the velocity the motion prior carries on
             pred = gtsam.NavState(pred.pose() if T_pnp is None else T_pnp, v0)
@@ -360,6 +361,20 @@ class Estimator:
         if t is None or stamp is None:
             return 0.0
         return (int(t) - int(stamp)) * 1e-9 - self.td_applied_s
+
+    def _exposure_shift(self, pred: gtsam.NavState, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray | None,
+                        frame: Any, features: FeatureFrame | None) -> gtsam.Pose3:
+        """The body's motion (T_b(t)_b(t + d)) from a keyframe's time ``t`` to its images'
+        exposure, ``d`` = the td estimate less what the keyframe's time holds, plus the
+        rolling shutter's readout to the observations' median row, at the predicted
+        velocity and the (bias-corrected) ``gyro`` rate."""
+        if gyro is None or not self.values.exists(graph.TD):
+            return gtsam.Pose3()
+        d = float(self.values.atVector(graph.TD)[0]) - self.td_obs(frame)
+        if self.cam.line_time_s and features is not None and len(features.row):
+            d += self.cam.line_time_s * float(np.median(features.row))
+        w = np.asarray(gyro, float) - bias.gyroscope()
+        return gtsam.Pose3(gtsam.Rot3.Expmap(w * d), pred.pose().rotation().unrotate(pred.velocity()) * d)
 
     def td(self) -> float:
         """Total camera-to-IMU offset (s): the sync layer's constant plus the estimate."""

@@ -9,9 +9,9 @@ So where TrackFrame fails, it runs once more without the prior from the previous
 interval's camera motion scaled to this interval (a visual constant-velocity guess, as
 DSO's CoarseTracker tries). Real MH_01 under that offset: the first two keyframes of the
 fault converge this way (rmse 8.0 / 5.6) 8-11 cm from the IMU prediction. A converged
-retry as far from the prediction as ``BridgeConfig.imu_check_min_m`` / ``_min_deg``
-contradicts the IMU: the source reports it (``PhotometricSource.imu_contradicted``) and
-the estimator bridges the interval as it does for the landmark check.
+retry at least ``BridgeConfig.imu_check_min_m`` from the prediction and within
+``imu_check_max_deg`` of its attitude contradicts the IMU: the source reports it
+(``PhotometricSource.imu_contradicted``) and the estimator bridges the interval as it does for the landmark check.
 """
 
 from __future__ import annotations
@@ -52,6 +52,6 @@ def window_guess(kfs: dict, vals: gtsam.Values, prev, T_w_cp: gtsam.Pose3, T_b_c
 
 def contradicts(bc, dist_m: float, ang_deg: float) -> bool:
     """Whether a converged alignment ``dist_m`` / ``ang_deg`` from the IMU prediction
-    contradicts the IMU (``BridgeConfig`` ``bc``: ``imu_check``, ``imu_check_min_m`` /
-    ``_min_deg``)."""
-    return bool(bc.imu_check and (dist_m >= bc.imu_check_min_m or ang_deg >= bc.imu_check_min_deg))
+    contradicts the IMU (``BridgeConfig`` ``bc``: ``imu_check``, at least ``imu_check_min_m``
+    and at most ``imu_check_max_deg``)."""
+    return bool(bc.imu_check and dist_m >= bc.imu_check_min_m and ang_deg <= bc.imu_check_max_deg)

@@ -284,8 +284,8 @@ class PhotometricSource:
     def _retry(self, k: int, kd: KeyframeData, prev: KeyframeData, ab_p: np.ndarray, T_w_cp: gtsam.Pose3,
                v: gtsam.Values) -> np.ndarray | None:
         """After a failed TrackFrame: once more without the IMU prior from the visual guess
-        (``vio.direct.imu_check``). Where it converges at least ``BridgeConfig.imu_check_min_m``
-        / ``_min_deg`` from the IMU prediction, the IMU is contradicted: its pose becomes
+        (``vio.direct.imu_check``). Where it converges as :func:`contradicts` says (3 cm from
+        the IMU prediction, within 1 degree), the IMU is contradicted: its pose becomes
         X(k)'s guess and the affine guess of A(k) is returned; else None."""
         T_b_c = self.rig.T_b_c
         guess = window_guess(self.kfs, self.est.values, prev, T_w_cp, T_b_c, kd.t_ns)
