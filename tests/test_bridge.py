@@ -21,13 +21,19 @@ def _frame(T_w_c: gtsam.Pose3, p_w: np.ndarray, noise: float, rng) -> FeatureFra
     return FeatureFrame(0, np.arange(n, dtype=np.int64), uv, np.zeros((n, 2)), np.full(n, np.nan))
 
 
-def test_pnp_locates_the_bridged_keyframe_and_leaves_out_jumped_tracks():
-    rng = np.random.default_rng(3)
+def _scene(rng, n: int, noise: float) -> tuple[gtsam.Pose3, gtsam.Pose3, np.ndarray, FeatureFrame]:
+    """(T_b_c, T_w_b, ``n`` world points 2-6 m in front of the camera, their observations
+    with ``noise`` (normalized) from T_w_b)."""
     T_b_c = gtsam.Pose3(gtsam.Rot3.Ypr(-1.57, 0.0, -1.57), np.array([0.05, -0.02, 0.01]))
     T_w_b = gtsam.Pose3(gtsam.Rot3.Ypr(0.4, 0.1, -0.05), np.array([1.0, 2.0, 1.5]))
     T_w_c = T_w_b.compose(T_b_c)
-    p_w = np.array([T_w_c.transformFrom(np.r_[rng.uniform(-1, 1, 2), 1.0] * rng.uniform(2, 6)) for _ in range(13)])
-    fr = _frame(T_w_c, p_w, 0.5 / 460, rng)
+    p_w = np.array([T_w_c.transformFrom(np.r_[rng.uniform(-1, 1, 2), 1.0] * rng.uniform(2, 6)) for _ in range(n)])
+    return T_b_c, T_w_b, p_w, _frame(T_w_c, p_w, noise, rng)
+
+
+def test_pnp_locates_the_bridged_keyframe_and_leaves_out_jumped_tracks():
+    rng = np.random.default_rng(3)
+    T_b_c, T_w_b, p_w, fr = _scene(rng, 13, 0.5 / 460)
     uv = fr.uv.copy()
     uv[[2, 7, 11]] += np.array([0.06, -0.04])            # three tracks jump by ~30 px
     fr = FeatureFrame(0, fr.ids, uv, fr.velocity, fr.row)
@@ -113,11 +119,7 @@ def _contradiction_case(pred_offset: gtsam.Pose3, n_jumped: int = 0):
     from types import SimpleNamespace
     from vio.backend.config import BackendConfig
     rng = np.random.default_rng(7)
-    T_b_c = gtsam.Pose3(gtsam.Rot3.Ypr(-1.57, 0.0, -1.57), np.array([0.05, -0.02, 0.01]))
-    T_w_b = gtsam.Pose3(gtsam.Rot3.Ypr(0.4, 0.1, -0.05), np.array([1.0, 2.0, 1.5]))
-    T_w_c = T_w_b.compose(T_b_c)
-    p_w = np.array([T_w_c.transformFrom(np.r_[rng.uniform(-1, 1, 2), 1.0] * rng.uniform(2, 6)) for _ in range(20)])
-    fr = _frame(T_w_c, p_w, 0.3 / 460, rng)
+    T_b_c, T_w_b, p_w, fr = _scene(rng, 20, 0.3 / 460)
     uv = fr.uv.copy()
     uv[:n_jumped] += rng.choice([-1.0, 1.0], (n_jumped, 2)) * rng.uniform(0.04, 0.08, (n_jumped, 2))
     fr = FeatureFrame(0, fr.ids, uv, fr.velocity, fr.row)
