@@ -371,8 +371,11 @@ class Estimator:
         if gyro is None or not self.values.exists(graph.TD):
             return gtsam.Pose3()
         d = float(self.values.atVector(graph.TD)[0]) - self.td_obs(frame)
-        if self.cam.line_time_s and features is not None and len(features.row):
-            d += self.cam.line_time_s * float(np.median(features.row))
+        rows = None if features is None else features.row[np.isfinite(features.row)]
+        if self.cam.line_time_s and rows is not None and len(rows):
+            d += self.cam.line_time_s * float(np.median(rows))
+        if not np.isfinite(d):
+            return gtsam.Pose3()
         w = np.asarray(gyro, float) - bias.gyroscope()
         return gtsam.Pose3(gtsam.Rot3.Expmap(w * d), pred.pose().rotation().unrotate(pred.velocity()) * d)
 
