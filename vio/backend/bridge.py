@@ -82,9 +82,7 @@ def motion_factors(est, k0: int, k1: int, t_ns: int, contradicted: bool = False)
     if not (held or contradicted):
         return [imu_factor(k0, k1, est.pim)], False
     # the still readings served the prediction only (vio.imu.integrate_still)
-    bc = est.cfg.bridge
-    fs = bridge_factors(k0, k1, (t_ns - est.kf_t[k0]) * 1e-9, bc.accel_density, bc.gyro_density,
-                        est.bias_walk)
+    fs = _interval_bridge(est, k0, k1, t_ns)
     if not held:
         return fs, True
     if bridged:
@@ -98,22 +96,34 @@ def motion_factors(est, k0: int, k1: int, t_ns: int, contradicted: bool = False)
     return fs, True
 
 
+def _interval_bridge(est, k0: int, k1: int, t_ns: int) -> list[gtsam.NonlinearFactor]:
+    """:func:`bridge_factors` of ``est``'s keyframe interval k0 -> k1 (ending at ``t_ns``)."""
+    bc = est.cfg.bridge
+    return bridge_factors(k0, k1, (t_ns - est.kf_t[k0]) * 1e-9, bc.accel_density, bc.gyro_density, est.bias_walk)
+
+
+def _report(est, k0: int, k1: int, why: str, *args) -> None:
+    """Count keyframe interval k0 -> k1 as contradicted and say so: a warning at the first
+    interval of a run of them, then at info level (``why`` % ``args``: what contradicted)."""
+    est.imu_contradictions += 1
+    (log.warning if est.contradicted_k != k0 else log.info)(
+        "keyframes %d-%d: " + why + ": the interval's IMU readings contradict vision and are not used "
+        "(motion prior instead; interval #%d)", k0, k1, *args, est.imu_contradictions)
+    est.contradicted_k = k1
+
+
 def replace_imu_factor(est, g: gtsam.NonlinearFactorGraph, k0: int, k1: int, t_ns: int) -> list:
     """Keyframe k1's interval bridged after all: its IMU factor, ``g``'s first factor, replaced
     by :func:`bridge_factors` (the motion prior in its slot, the bias walk appended, so the
     positions the other factors recorded hold), when a factor source's own alignment
     contradicted the IMU (``FactorSource.imu_contradicted``: direct mode's TrackFrame).
     Counts the interval and warns as :func:`imu_contradicted` does; returns the factors."""
-    bc = est.cfg.bridge
-    fs = bridge_factors(k0, k1, (t_ns - est.kf_t[k0]) * 1e-9, bc.accel_density, bc.gyro_density, est.bias_walk)
+    fs = _interval_bridge(est, k0, k1, t_ns)
     g.replace(0, fs[0])
     for f in fs[1:]:
         g.add(f)
-    est.imu_contradictions += 1
-    (log.warning if est.contradicted_k != k0 else log.info)(
-        "keyframes %d-%d: the photometric alignment contradicts the IMU prediction: the interval's IMU "
-        "readings are not used (motion prior instead; interval #%d)", k0, k1, est.imu_contradictions)
-    est.contradicted_k, est.contradicted_t = k1, t_ns
+    _report(est, k0, k1, "the photometric alignment is away from the IMU prediction")
+    est.contradicted_t = t_ns
     return fs
 
 
@@ -239,11 +249,6 @@ def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
     if n_in < max(bc.imu_check_min_inliers, bc.imu_check_min_frac * n) or (
             d < bc.imu_check_min_m or rot > bc.imu_check_max_deg):
         return None
-    est.imu_contradictions += 1
-    (log.warning if est.contradicted_k != est.k else log.info)(
-        "keyframes %d-%d: the IMU prediction re-projects %.0f %% of %d window-landmark observations, "
-        "PnP %d at %.3f m / %.2f deg from it: the interval's IMU readings contradict vision and "
-        "are not used (motion prior instead; interval #%d)", est.k, est.k + 1, 100 * frac, n, n_in, d, rot,
-        est.imu_contradictions)
-    est.contradicted_k = est.k + 1
+    _report(est, est.k, est.k + 1, "the IMU prediction re-projects %.0f %% of %d window-landmark observations, "
+            "PnP %d at %.3f m / %.2f deg from it", 100 * frac, n, n_in, d, rot)
     return T

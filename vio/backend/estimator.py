@@ -261,12 +261,13 @@ class Estimator:
         for src in self.sources:
             src.observe(k1, frame)
             removals += src.prepare_update(k1, pred, leaving, g, v, stamps)
-        if not held and any(src.imu_contradicted(k1) for src in self.sources):
-            f_imu, held = bridge.replace_imu_factor(self, g, k0, k1, t_ns)[0], True
-            self.bridged_kf.add(k1)
-            v.update(V(k1), v0)
-        elif hold and any(src.imu_contradicted(k1) for src in self.sources):
-            self.contradicted_t = t_ns            # the hold goes on from here
+        if any(src.imu_contradicted(k1) for src in self.sources):
+            if not held:
+                f_imu, held = bridge.replace_imu_factor(self, g, k0, k1, t_ns)[0], True
+                self.bridged_kf.add(k1)
+                v.update(V(k1), v0)
+            elif hold:
+                self.contradicted_t = t_ns        # the hold goes on from here
         recovered = False
         try:
             self._update(g, v, stamps, removals)

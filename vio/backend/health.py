@@ -33,9 +33,9 @@ and yaw (unobservable) tight, roll and pitch ``restart_rp_sigma`` rad, velocity
 ``restart_gyro_bias_sigma`` rad/s (a healthy estimate, tighter than the initial prior:
 the restarted window has no landmarks yet). Only a non-finite state is checked for
 ``cooldown_keyframes`` keyframes after a (re)start. With ``reinit`` the pipeline then
-re-initializes the window by an alignment over the frames after the restart (dynamic;
-stereo in the photometric modes; ``vio.reinit``): the restart's guess can be as wrong as
-the state it replaced.
+re-initializes the window by an alignment over the frames after the restart (stereo on a
+stereo rig, else dynamic; ``vio.reinit``): the restart's guess can be as wrong as the
+state it replaced.
 
 Worst values on clean real runs (``benchmarks/bench_faults.py``; V1_01 features, MH_05
 mono, MH_01 stereo): speed 1.5 m/s, bias 2.8 sigmas, windowed inlier ratio 0.70, IMU

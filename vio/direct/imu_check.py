@@ -11,7 +11,8 @@ DSO's CoarseTracker tries). Real MH_01 under that offset: the first two keyframe
 fault converge this way (rmse 8.0 / 5.6) 8-11 cm from the IMU prediction. A converged
 retry at least ``BridgeConfig.imu_check_min_m`` from the prediction and within
 ``imu_check_max_deg`` of its attitude contradicts the IMU: the source reports it
-(``PhotometricSource.imu_contradicted``) and the estimator bridges the interval as it does for the landmark check.
+(``PhotometricSource.imu_contradicted``) and the estimator bridges the interval as it does
+for the landmark check.
 """
 
 from __future__ import annotations
@@ -32,10 +33,9 @@ def visual_guess(T_w_c0: gtsam.Pose3, T_w_c1: gtsam.Pose3, t0_ns: int, t1_ns: in
 
 
 def pose_offset(T_pred: gtsam.Pose3, T: gtsam.Pose3) -> tuple[float, float]:
-    """Distance (m) and angle (deg) of ``T`` from ``T_pred``."""
+    """Distance (m) and angle (rad) of ``T`` from ``T_pred``."""
     d = T_pred.between(T)
-    return (float(np.linalg.norm(d.translation())),
-            float(np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))))
+    return float(np.linalg.norm(d.translation())), float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))
 
 
 def window_guess(kfs: dict, vals: gtsam.Values, prev, T_w_cp: gtsam.Pose3, T_b_c: gtsam.Pose3,
@@ -50,8 +50,14 @@ def window_guess(kfs: dict, vals: gtsam.Values, prev, T_w_cp: gtsam.Pose3, T_b_c
     return visual_guess(vals.atPose3(X(pp.k)).compose(T_b_c), T_w_cp, pp.t_ns, prev.t_ns, t_ns)
 
 
-def contradicts(bc, dist_m: float, ang_deg: float) -> bool:
-    """Whether a converged alignment ``dist_m`` / ``ang_deg`` from the IMU prediction
-    contradicts the IMU (``BridgeConfig`` ``bc``: ``imu_check``, at least ``imu_check_min_m``
-    and at most ``imu_check_max_deg``)."""
-    return bool(bc.imu_check and dist_m >= bc.imu_check_min_m and ang_deg <= bc.imu_check_max_deg)
+def contradicts(bc, dist_m: float, ang_rad: float, dt_s: float, held: bool) -> bool:
+    """Whether a converged alignment ``dist_m`` / ``ang_rad`` from the IMU prediction over
+    ``dt_s`` contradicts the IMU (``BridgeConfig`` ``bc``): at least ``imu_check_min_m`` and
+    at most ``imu_check_max_deg``; ``held`` (within ``imu_check_hold_s`` of a contradicted
+    interval) a residual acceleration ``2 d / dt^2`` of at least ``imu_check_hold_accel``:
+    the held intervals are short and the IMU's own error over one is a few mm."""
+    if not bc.imu_check:
+        return False
+    if held:
+        return 2.0 * dist_m / max(dt_s, 1e-3) ** 2 >= bc.imu_check_hold_accel
+    return dist_m >= bc.imu_check_min_m and float(np.degrees(ang_rad)) <= bc.imu_check_max_deg

@@ -51,13 +51,12 @@ from factors.photometric_host import HostParams, HostPoints, HostTiming, StereoH
 from vio.backend.bridge import within_hold
 from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
-from vio.conventions import pose_from_matrix
 from vio.direct.config import DirectConfig
 from vio.direct.imu_check import contradicts, pose_offset, window_guess
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
-from vio.direct.trackframe import MotionPrior, track_frame
+from vio.direct.trackframe import MotionPrior, body_pose, track_frame
 from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
@@ -244,9 +243,11 @@ class PhotometricSource:
         T_w_cp = vals.atPose3(X(prev.k)).compose(T_b_c)
         T_pred = v.atPose3(X(k))
         T_init = T_w_cp.between(T_pred.compose(T_b_c))
-        prior = self._motion_prior(T_init, (kd.t_ns - prev.t_ns) * 1e-9)
-        if within_hold(self.est, kd.t_ns):      # the IMU is suspect: neither its guess nor its prior
-            T_init, prior = window_guess(self.kfs, vals, prev, T_w_cp, T_b_c, kd.t_ns) or T_init, None
+        dt_ns = kd.t_ns - prev.t_ns
+        held = within_hold(self.est, kd.t_ns)      # the IMU is suspect: neither its guess nor its prior
+        if held:
+            T_init = window_guess(self.kfs, vals, prev, T_w_cp, T_b_c, kd.t_ns) or T_init
+        prior = None if held else MotionPrior.from_imu(T_init, self.est.pim, dt_ns * 1e-9, self.cfg.track)
         t0 = time.perf_counter()
         try:
             res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), T_init, ab_p,
@@ -256,7 +257,8 @@ class PhotometricSource:
             log.warning("TrackFrame failed at keyframe %d (%s: %s); IMU prediction kept", k,
                         type(exc).__name__, exc)
         ms = (time.perf_counter() - t0) * 1e3
-        if (res is None or not res.ok) and self.cfg.track.retry_visual:
+        # held, the run above was already the prior-free one from the visual guess
+        if (res is None or not res.ok) and self.cfg.track.retry_visual and not held:
             ab = self._retry(k, kd, prev, ab_p, T_w_cp, v)
             if ab is not None:
                 kd.release_pyramid()
@@ -265,14 +267,10 @@ class PhotometricSource:
         if res is None:
             self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
             return ab_p
-        # re-orthonormalized: T_tr = T_w_cp (T_w_cp^-1 T_pred T_b_c) ... composes the
-        # previous keyframe's rotation three times, so its rounding error tripled at every
-        # keyframe (1e-16 -> 0.5% shear by keyframe 28 of real MH_01, then divergence)
-        T_tr = pose_from_matrix(T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse()).matrix())
-        d = T_pred.between(T_tr)
-        dist, ang = float(np.linalg.norm(d.translation())), float(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation())))
+        T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
+        dist, ang = pose_offset(T_pred, T_tr)
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
-        if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, np.degrees(ang), kd.t_ns - prev.t_ns):
+        if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, ang, dt_ns, held):
             used = True      # converged against the IMU prior, and still away from the prediction
         if used:
             v.update(X(k), T_tr)
@@ -299,48 +297,28 @@ class PhotometricSource:
             return None
         if not res.ok:
             return None
-        T_tr = pose_from_matrix(T_w_cp.compose(res.T_kf_new).compose(T_b_c.inverse()).matrix())
+        T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
         dist, ang = pose_offset(v.atPose3(X(k)), T_tr)
-        if not self._contradicts(k, dist, ang, kd.t_ns - prev.t_ns):
+        if not self._contradicts(k, dist, ang, kd.t_ns - prev.t_ns, False):
             return None
         v.update(X(k), T_tr)
-        self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, np.radians(ang),
-                                       (time.perf_counter() - t0) * 1e3))
+        self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, ang, (time.perf_counter() - t0) * 1e3))
         return np.array([res.a, res.b])
 
-    def _contradicts(self, k: int, dist: float, ang_deg: float, dt_ns: int) -> bool:
+    def _contradicts(self, k: int, dist: float, ang: float, dt_ns: int, held: bool) -> bool:
         """:func:`vio.direct.imu_check.contradicts` for keyframe k's converged TrackFrame,
-        ``dist`` m / ``ang_deg`` from the IMU prediction over ``dt_ns``; recorded for
-        :meth:`imu_contradicted`. While the IMU is held out the residual acceleration
-        ``2 dist / dt^2`` decides (``BridgeConfig.imu_check_hold_accel``): the held
-        intervals are short and the IMU's own error over one is a few mm."""
-        bc = self.est.cfg.bridge
-        if within_hold(self.est, self.kfs[k].t_ns):
-            hit = bc.imu_check and 2.0 * dist / max(dt_ns * 1e-9, 1e-3) ** 2 >= bc.imu_check_hold_accel
-        else:
-            hit = contradicts(bc, dist, ang_deg)
-        if hit:
-            self.contradicted_k = k
-            log.info("keyframe %d: TrackFrame converged %.3f m / %.2f deg from the IMU prediction over %.2f s",
-                     k, dist, ang_deg, dt_ns * 1e-9)
-        return hit
+        ``dist`` m / ``ang`` rad from the IMU prediction over ``dt_ns``, ``held``: within the
+        IMU hold; recorded for :meth:`imu_contradicted`."""
+        if not contradicts(self.est.cfg.bridge, dist, ang, dt_ns * 1e-9, held):
+            return False
+        self.contradicted_k = k
+        log.info("keyframe %d: TrackFrame converged %.3f m / %.2f deg from the IMU prediction over %.2f s",
+                 k, dist, np.degrees(ang), dt_ns * 1e-9)
+        return True
 
     def imu_contradicted(self, k: int) -> bool:
         """Whether keyframe k's TrackFrame contradicted the IMU prediction (:meth:`_retry`)."""
         return self.contradicted_k == k
-
-    def _motion_prior(self, T_init: gtsam.Pose3, dt: float) -> MotionPrior | None:
-        """The IMU prediction ``T_init`` (camera of the new keyframe in the previous one's,
-        ``dt`` s apart) as TrackFrame's prior: sigmas from the preintegration covariance
-        (rotation, position blocks) and the configured floors (``TrackConfig``)."""
-        tc, pim = self.cfg.track, self.est.pim
-        if not tc.imu_prior or pim is None or pim.deltaTij() <= 0:
-            return None
-        cov = np.asarray(pim.preintMeasCov())
-        s_rot = max(tc.prior_rot_sigma, float(np.sqrt(np.trace(cov[:3, :3]) / 3.0)))
-        s_tr = float(np.hypot(tc.prior_trans_sigma, tc.prior_vel_sigma * dt))
-        s_tr = max(s_tr, float(np.sqrt(np.trace(cov[3:6, 3:6]) / 3.0)))
-        return MotionPrior(T_init, s_rot, s_tr)
 
     def _project(self, host: Host, T_w_bj: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray]:
         """Host centre pixels of the live points projected into a frame at ``T_w_bj``:
