@@ -7,7 +7,7 @@ import numpy as np
 
 from vio.backend import graph
 from vio.backend.config import BackendConfig
-from vio.backend.landmarks import Obs, Track
+from vio.backend.landmarks import Obs, Track, anchor_points
 
 TD = 0.008        # s, exposure = keyframe time + td
 RATES = np.array([[0.3, -1.2, 0.4], [-0.9, 0.8, 0.1], [1.1, 0.2, -0.6], [0.0, -1.5, 0.3]])  # rad/s
@@ -47,3 +47,22 @@ def test_reprojection_errors_apply_the_factor_shift():
     # at td = 0 the shift is the factor's too: the raw errors come back
     vals.update(graph.TD, np.array([0.0]))
     np.testing.assert_allclose(graph.reprojection_errors(tr, frames, vals) * 458.0, raw, rtol=1e-9)
+
+
+def test_world_points_lie_where_the_factors_place_them():
+    """``anchor_points`` (the window's world points: the IMU check, the bridged windows'
+    PnP, the viewer) takes the anchor ray the factor takes, moved to the keyframe's time."""
+    tr, vals, frames = _scene()
+    graph.build_landmark_factor(tr, frames, BackendConfig(), 1.0 / 458.0, 0.0,
+                                np.array([tr.obs[f].velocity for f in frames]))
+    cams = graph.anchor_cameras(vals, {0})
+    lam = np.array([vals.atVector(tr.key)[0]])
+    p_w = np.array([0.4, -0.2, 3.0])
+    shifted = anchor_points([tr], lam, cams, graph.td_value(vals))[0]
+    raw = anchor_points([tr], lam, cams)[0]
+    assert np.linalg.norm(shifted - p_w) < 2e-4            # m: the first-order shift's residue
+    assert np.linalg.norm(raw - p_w) > 10 * np.linalg.norm(shifted - p_w)
+    # the outlier check re-projects that very point into the other frames: no error left
+    T = vals.atPose3(graph.X(2))
+    q = T.transformTo(shifted)
+    np.testing.assert_allclose(q[:2] / q[2], tr.shifted_uv(2, TD), atol=0.1 / 458.0)

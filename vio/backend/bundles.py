@@ -347,7 +347,7 @@ class EliminatedLandmarks(LandmarkManager):
         cams = graph.anchor_cameras(values, {tr.anchor for tr in self.tracks.values() if tr.key is not None})
         sel = [tr for tr in self.tracks.values() if tr.key is not None and tr.lam > 0 and tr.anchor in cams]
         return (np.array([tr.lid for tr in sel], dtype=np.int64),
-                anchor_points(sel, np.array([tr.lam for tr in sel]), cams))
+                anchor_points(sel, np.array([tr.lam for tr in sel]), cams, graph.td_value(values)))
 
 
 def _warm_up() -> None:

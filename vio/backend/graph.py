@@ -173,11 +173,10 @@ def row_offsets(rows: np.ndarray, td_obs: np.ndarray, line_time_s: float) -> np.
     return np.where(np.isfinite(rows), rows * line_time_s, 0.0) - td_obs
 
 
-def _shifted(track: Track, f: int, td: float) -> np.ndarray:
-    """The cam0 observation of keyframe f at the keyframe's time (seed 004 shift)."""
-    s = track.td_shift.get(f)
-    uv = track.obs[f].uv
-    return uv if s is None else uv - (td + s[1]) * s[0]
+def td_value(values: gtsam.Values) -> float:
+    """The td variable's value (s; 0 without one): what the factors' observation shifts
+    (``Track.shifted_uv``) take."""
+    return float(values.atVector(TD)[0]) if values.exists(TD) else 0.0
 
 
 def _td_velocity(vel: np.ndarray, vmax: float) -> np.ndarray:
@@ -314,8 +313,8 @@ def reprojection_errors(track: Track, frames: list[int], values: gtsam.Values,
         return np.full(len(frames) - 1, np.inf)
     pos, R, t = table if table is not None else camera_table(values, frames)
     idx = np.array([pos[f] for f in frames])
-    td = float(values.atVector(TD)[0]) if values.exists(TD) else 0.0
-    uv_all = np.array([_shifted(track, f, td) for f in frames])
+    td = td_value(values)
+    uv_all = np.array([track.shifted_uv(f, td) for f in frames])
     a = uv_all[0]
     p_w = R[idx[0]] @ (np.array([a[0], a[1], 1.0]) / lam) + t[idx[0]]
     p_c = np.einsum("nji,nj->ni", R[idx[1:]], p_w - t[idx[1:]])
@@ -334,7 +333,7 @@ def worst_reprojection_errors(tracks: list[Track], values: gtsam.Values, table: 
     must be positive (the caller rejects the others); ``lams`` (n,): the inverse depths
     (default: the tracks' keys in ``values``)."""
     pos, R, t = table
-    td = float(values.atVector(TD)[0]) if values.exists(TD) else 0.0
+    td = td_value(values)
     lam = np.empty(len(tracks)) if lams is None else np.asarray(lams, float)
     blocks, frames_all, first, n = [], [], [], 0
     for i, tr in enumerate(tracks):

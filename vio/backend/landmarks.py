@@ -82,6 +82,14 @@ class Track:
     def stereo_frames(self) -> list[int]:
         return [f for f in self.frames() if self.obs[f].right_uv is not None]
 
+    def shifted_uv(self, f: int, td: float) -> np.ndarray:
+        """The cam0 observation (2,) of keyframe ``f`` moved to the keyframe's time as its
+        factor moves it (``td_shift``, seed 004) at the td estimate ``td`` (the td
+        variable, s); unshifted where the track has no factor yet."""
+        s = self.td_shift.get(f)
+        uv = self.obs[f].uv
+        return uv if s is None else uv - (td + s[1]) * s[0]
+
     def anchor_point(self, T_w_c: gtsam.Pose3, lam: float) -> np.ndarray:
         """The point (3,) at inverse depth ``lam`` (1/m) on the anchor observation's ray,
         in the frame ``T_w_c`` (the anchor camera's pose) maps into."""
@@ -89,14 +97,21 @@ class Track:
         return T_w_c.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
 
 
-def anchor_points(tracks: list[Track], lams: np.ndarray, cams: dict[int, gtsam.Pose3]) -> np.ndarray:
-    """World points (N, 3) of ``tracks`` at inverse depths ``lams`` (N,) 1/m:
-    :meth:`Track.anchor_point` of each, its anchor camera ``cams[track.anchor]`` (T_w_c)."""
+def anchor_points(tracks: list[Track], lams: np.ndarray, cams: dict[int, gtsam.Pose3],
+                  td: float | None = None) -> np.ndarray:
+    """World points (N, 3) of ``tracks`` at inverse depths ``lams`` (N,) 1/m, each on its
+    anchor observation's ray from its anchor camera ``cams[track.anchor]`` (T_w_c).
+    ``td``: the td estimate (the td variable, s): the ray is that of the anchor
+    observation moved to the keyframe's time as the factors move it
+    (:meth:`Track.shifted_uv`), so the points are those the factors place (with td at
+    25 ms and the camera turning at 0.5 rad/s the raw ray is ~6 px off); None: raw rays."""
     if not tracks:
         return np.zeros((0, 3))
     M = {f: cams[f].matrix() for f in {tr.anchor for tr in tracks}}
     A = np.array([M[tr.anchor] for tr in tracks])
-    ray = np.array([(*tr.obs[tr.anchor].uv, 1.0) for tr in tracks]) / np.asarray(lams, float)[:, None]
+    uv = (np.array([tr.obs[tr.anchor].uv for tr in tracks]) if td is None
+          else np.array([tr.shifted_uv(tr.anchor, td) for tr in tracks]))
+    ray = np.c_[uv, np.ones(len(tracks))] / np.asarray(lams, float)[:, None]
     return np.einsum("nij,nj->ni", A[:, :3, :3], ray) + A[:, :3, 3]
 
 

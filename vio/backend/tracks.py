@@ -334,5 +334,6 @@ class LandmarkManager(TrackFactorBuilder):
         sel = [tr for tr, k in zip(sel, keep) if k]
         pids, ppts = self.points.points_w(values)
         return (np.array([tr.lid for tr in sel] + pids, dtype=np.int64),
-                np.vstack([anchor_points(sel, lams[keep], cams), np.array(ppts).reshape(-1, 3)]))
+                np.vstack([anchor_points(sel, lams[keep], cams, graph.td_value(values)),
+                           np.array(ppts).reshape(-1, 3)]))
 
