@@ -236,7 +236,9 @@ def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.linalg.norm(q[:, :2] / q[:, 2:] - features.uv[seen], axis=1)
     frac = float(np.mean((q[:, 2] > 0) & (err <= thresh)))
-    if frac > bc.imu_check_max_frac:
+    fired = est.check_fired_t
+    after = fired is not None and features.t_ns - fired <= bc.imu_check_hold_s * 1e9
+    if frac > (bc.imu_check_hold_frac if after else bc.imu_check_max_frac):
         return None
     T, out = locate(ids, pts, features, T_pred, T_b_c, thresh, bc.imu_check_min_inliers)
     if T is None:
@@ -249,6 +251,7 @@ def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
     if n_in < max(bc.imu_check_min_inliers, bc.imu_check_min_frac * n) or (
             d < bc.imu_check_min_m or rot > bc.imu_check_max_deg):
         return None
+    est.check_fired_t = features.t_ns
     _report(est, est.k, est.k + 1, "the IMU prediction re-projects %.0f %% of %d window-landmark observations, "
             "PnP %d at %.3f m / %.2f deg from it", 100 * frac, n, n_in, d, rot)
     return T

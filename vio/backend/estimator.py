@@ -63,6 +63,7 @@ class Estimator:
         self.imu_contradictions = 0   # keyframe intervals whose IMU vision contradicted (bridged)
         self.contradicted_k: int | None = None   # the last keyframe such an interval ended at
         self.contradicted_t: int | None = None   # and its time (ns; BridgeConfig.imu_check_hold_s)
+        self.check_fired_t: int | None = None    # the landmark check's last firing (ns)
         self.restart_state: InitialState | None = None   # the last soft restart's state (vio.reinit)
         self.td_reanchors = 0     # restarts at a fed-back td (CalibConfig.td_reanchor_s)
         self.reiterations = 0     # updates iterated again (SolverConfig.reiterate_chi2)
