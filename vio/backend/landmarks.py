@@ -90,11 +90,12 @@ class Track:
         uv = self.obs[f].uv
         return uv if s is None else uv - (td + s[1]) * s[0]
 
-    def anchor_point(self, T_w_c: gtsam.Pose3, lam: float) -> np.ndarray:
+    def anchor_point(self, T_w_c: gtsam.Pose3, lam: float, td: float | None = None) -> np.ndarray:
         """The point (3,) at inverse depth ``lam`` (1/m) on the anchor observation's ray,
-        in the frame ``T_w_c`` (the anchor camera's pose) maps into."""
-        a = self.obs[self.anchor]
-        return T_w_c.transformFrom(np.array([a.uv[0], a.uv[1], 1.0]) / lam)
+        in the frame ``T_w_c`` (the anchor camera's pose) maps into; ``td`` as in
+        :func:`anchor_points`."""
+        uv = self.obs[self.anchor].uv if td is None else self.shifted_uv(self.anchor, td)
+        return T_w_c.transformFrom(np.array([uv[0], uv[1], 1.0]) / lam)
 
 
 def anchor_points(tracks: list[Track], lams: np.ndarray, cams: dict[int, gtsam.Pose3],

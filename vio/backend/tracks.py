@@ -196,7 +196,7 @@ class LandmarkManager(TrackFactorBuilder):
         """A just-inserted track handed to ``self.points`` at the point its inverse depth
         says (``VisionConfig.reanchor = "point"``); the inverse-depth value is dropped."""
         T_w_c = self._pose(tr.anchor, k, pred).compose(self.est.values.atPose3(graph.EXTRINSIC))
-        p_w = tr.anchor_point(T_w_c, float(v.atVector(tr.key)[0]))
+        p_w = tr.anchor_point(T_w_c, float(v.atVector(tr.key)[0]), graph.td_value(self.est.values))
         v.erase(tr.key)
         self.points.convert(tr.lid, p_w, tr.obs, t, g, v, stamps)
 
@@ -216,7 +216,8 @@ class LandmarkManager(TrackFactorBuilder):
         lam = self._lam(tr)
         if lam is None or lam <= 0:
             return None
-        return tr.anchor_point(vals.atPose3(graph.X(tr.anchor)).compose(vals.atPose3(graph.EXTRINSIC)), lam)
+        return tr.anchor_point(vals.atPose3(graph.X(tr.anchor)).compose(vals.atPose3(graph.EXTRINSIC)), lam,
+                               graph.td_value(vals))
 
     def _reanchor(self, tr: Track, p_w: np.ndarray, k: int, pred: gtsam.NavState,
                   v: gtsam.Values) -> None:
