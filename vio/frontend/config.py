@@ -39,6 +39,16 @@ class FrontendConfig:
     # Real MH_01 stereo, all (3) -> 1 / 0: LK 8.9 -> 7.4 / 6.0 ms a frame; 0 lets drifting
     # tracks through on renders with exposure changes (seed 14: 10 -> 17 mm; 1: 10.5 mm)
     lk_back_levels: int = 1
+    # LK assumes brightness constancy, which a camera's exposure control breaks: where the
+    # grey levels of the tracked points' 7x7 windows say the frame's brightness changed by
+    # at least lk_brightness_min grey levels at mid-grey (an affine fit, b = g a + o), the
+    # pair is brought to one brightness and LK runs again from the first pass's result
+    # (vio.frontend.tracker.brightness_matched). Renders with exposure changes (vio sim
+    # --exposure smooth, stereo): td error 2.04 / 0.58 -> 0.94 / 0.03 ms on seeds 201 / 202,
+    # sim14 6 stretches 7.15 -> 6.24 mm; real MH_01 stereo, 22 stretches, 5.47 -> 5.32 mm
+    # (benchmarks/README.md, stop 58).
+    lk_brightness: bool = True
+    lk_brightness_min: float = 1.0
     # geometric outlier rejection between consecutive frames
     ransac: bool = True
     ransac_model: Literal["fundamental", "essential"] = "fundamental"

@@ -33,6 +33,34 @@ def check_image(img: np.ndarray, cam: Camera, what: str) -> np.ndarray:
     return cam.calib.check_resolution(img, what)
 
 
+def brightness_matched(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, px_b: np.ndarray,
+                       patch: int = 7, min_points: int = 20, min_change: float = 1.0
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The pair with image b's brightness mapped onto a's or a's onto b's (the brighter one
+    scaled down, so nothing saturates), or None where the change is below ``min_change``
+    grey levels at mid-grey. The affine map ``b = g a + o`` is fitted to the mean grey
+    levels of ``patch`` x ``patch`` windows at the matched pixels ``px_a`` / ``px_b``
+    (N, 2) by least squares, refitted without the worst quarter (occlusions, mistracks)."""
+    if len(px_a) < min_points:
+        return None
+    def means(img, px):
+        blur = cv2.blur(img, (patch, patch))
+        ij = np.clip(np.round(px).astype(np.int64), 0, [img.shape[1] - 1, img.shape[0] - 1])
+        return blur[ij[:, 1], ij[:, 0]].astype(np.float64)
+    a, b = means(img_a, px_a), means(img_b, px_b)
+    keep = np.ones(len(a), bool)
+    for _ in range(2):
+        A = np.c_[a[keep], np.ones(int(keep.sum()))]
+        (g, o), *_ = np.linalg.lstsq(A, b[keep], rcond=None)
+        r = np.abs(b - (g * a + o))
+        keep = r <= np.quantile(r, 0.75)
+    if not (0.5 < g < 2.0) or abs((g - 1.0) * 128.0 + o) < min_change:
+        return None
+    if g <= 1.0:
+        return cv2.convertScaleAbs(img_a, alpha=g, beta=o), img_b
+    return img_a, cv2.convertScaleAbs(img_b, alpha=1.0 / g, beta=-o / g)
+
+
 def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np.ndarray,
              cfg: FrontendConfig, fb_threshold_px: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Track pixels ``px_a`` (N, 2) from image a to b starting at ``guess_b`` (N, 2).
@@ -190,6 +218,7 @@ class KltTracker:
         self.preprocess = Preprocess(cam, cfg)
         self._next_id = 0
         self._prev: MonoTracks | None = None
+        self.brightness_passes = 0    # frames tracked again after an exposure change (lk_brightness)
 
     def track(self, t_ns: int, img: np.ndarray, R_prev_cur: np.ndarray | None = None) -> MonoTracks:
         """Track into a new image (H, W) uint8 taken at ``t_ns``.
@@ -238,6 +267,11 @@ class KltTracker:
             guess = np.where(self.cam.in_image(pred)[:, None], pred, prev.px)
         fb = self.cfg.fb_threshold_px if self.cfg.fb_check else None
         px, ok = lk_track(prev.image, img, prev.px, guess, self.cfg, fb)
+        if self.cfg.lk_brightness:     # an exposure change: LK again on the pair brought to one brightness
+            pair = brightness_matched(prev.image, img, prev.px[ok], px[ok], min_change=self.cfg.lk_brightness_min)
+            if pair is not None:
+                self.brightness_passes += 1
+                px, ok = lk_track(pair[0], pair[1], prev.px, np.where(ok[:, None], px, guess), self.cfg, fb)
         ok &= self.cam.in_image(px, self.cfg.border_px)
         idx = np.flatnonzero(ok)
         px = px[idx]
