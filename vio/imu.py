@@ -206,3 +206,12 @@ class KeyframeRates:
         """Keep keyframe ``k`` only (a restarted window)."""
         for j in [j for j in self._kf if j != k]:
             self.drop(j)
+
+
+def rotate(R: gtsam.Rot3, t_ns: np.ndarray, w: np.ndarray) -> gtsam.Rot3:
+    """``R`` carried through the intervals of ``t_ns`` (n + 1,) ns at the body rates ``w``
+    (n, 3) rad/s, one per interval: ``R Exp(w_0 dt_0) Exp(w_1 dt_1) ...`` (``R_w_b`` at the
+    first time -> at the last)."""
+    for dt, wk in zip(np.diff(np.asarray(t_ns, np.int64)) * 1e-9, w):
+        R = R.compose(gtsam.Rot3.Expmap(wk * dt))
+    return R

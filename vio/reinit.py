@@ -63,6 +63,7 @@ from vio.backend.dynamic_init import align, init_window
 from vio.backend.estimator import Estimator
 from vio.backend.init import InitialState
 from vio.backend.stereo_init import stereo_align
+from vio.imu import rotate
 
 log = logging.getLogger(__name__)
 
@@ -149,9 +150,7 @@ class Reinit:
         m = imu.t_ns > t
         if m.any():
             ts, g = np.r_[t, imu.t_ns[m]], imu.gyro[m]
-            wm = 0.5 * (np.vstack([g[:1], g[:-1]]) + g) - bg
-            for dt, w in zip(np.diff(ts) * 1e-9, wm):
-                R = R.compose(gtsam.Rot3.Expmap(w * dt))
+            R = rotate(R, ts, 0.5 * (np.vstack([g[:1], g[:-1]]) + g) - bg)
             t = int(ts[-1])
         self._att = (t, R, bg)
         return R

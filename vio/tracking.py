@@ -21,6 +21,7 @@ from vio.frontend import Frontend
 from vio.frontend.camera import camera_rotation
 from vio.frontend.config import FrontendConfig
 from vio.errors import DataError
+from vio.imu import rotate
 from vio.io.euroc import image_exists, read_image
 from vio.io.types import CameraCalib, ImuData
 from vio.keyframes import KeyframePolicy
@@ -33,12 +34,7 @@ if TYPE_CHECKING:
 def gyro_rotation(imu: ImuData) -> np.ndarray:
     """Body rotation ``R_b(t0)_b(t1)`` (3, 3) over a packet's IMU segment (raw gyro,
     midpoint rule); bias-free, which is ample for an LK initial guess."""
-    R = gtsam.Rot3()
-    dt = np.diff(imu.t_ns) * 1e-9
-    w = 0.5 * (imu.gyro[1:] + imu.gyro[:-1])
-    for k in range(dt.shape[0]):
-        R = R.compose(gtsam.Rot3.Expmap(w[k] * dt[k]))
-    return R.matrix()
+    return rotate(gtsam.Rot3(), imu.t_ns, 0.5 * (imu.gyro[1:] + imu.gyro[:-1])).matrix()
 
 
 class ImageStage:
