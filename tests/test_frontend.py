@@ -190,6 +190,23 @@ def test_an_exposure_change_is_tracked_through(static_set, gain: float, offset: 
     assert kept[False] < 0.7 and median[False] > 1.3 * median[True], (kept, median)
 
 
+def test_brightness_match_saturates_instead_of_mirroring() -> None:
+    """``brightness_matched`` fits ``b = g a + o`` at the matched windows and maps the
+    brighter image down: grey levels that fall below 0 become 0, not their absolute value
+    (``cv2.convertScaleAbs`` would mirror them); a change under a grey level is none."""
+    from vio.frontend.tracker import brightness_matched
+    rng = np.random.default_rng(3)
+    a = cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8), (5, 5), 0)
+    a[:, :20] = 3                                          # a dark band
+    b = np.clip(a.astype(int) - 10, 0, 255).astype(np.uint8)
+    px = np.column_stack([rng.uniform(30, 150, 60), rng.uniform(10, 110, 60)])
+    a2, b2 = brightness_matched(a, b, px, px)
+    assert b2 is b and a2[:, :20].max() == 0
+    inner = (a > 20) & (a < 240)
+    np.testing.assert_allclose(a2[inner].astype(int), b[inner].astype(int), atol=1)
+    assert brightness_matched(a, a, px, px) is None
+
+
 def rotated_view(cam: Camera, img: np.ndarray, R_prev_cur: np.ndarray) -> np.ndarray:
     """The image a camera rotated by R_prev_cur would see (pure rotation, same centre)."""
     h, w = img.shape

@@ -36,8 +36,8 @@ def check_image(img: np.ndarray, cam: Camera, what: str) -> np.ndarray:
 def brightness_matched(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, px_b: np.ndarray,
                        patch: int = 7, min_points: int = 20, min_change: float = 1.0
                        ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pair with image b's brightness mapped onto a's or a's onto b's (the brighter one
-    scaled down, so nothing saturates), or None where the change is below ``min_change``
+    """The pair with image b's brightness mapped onto a's or a's onto b's (the one brighter
+    at mid-grey mapped down, so little saturates), or None where the change is below ``min_change``
     grey levels at mid-grey. The affine map ``b = g a + o`` is fitted to the mean grey
     levels of ``patch`` x ``patch`` windows at the matched pixels ``px_a`` / ``px_b``
     (N, 2) by least squares, refitted without the worst quarter (occlusions, mistracks)."""
@@ -54,11 +54,12 @@ def brightness_matched(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, p
         (g, o), *_ = np.linalg.lstsq(A, b[keep], rcond=None)
         r = np.abs(b - (g * a + o))
         keep = r <= np.quantile(r, 0.75)
-    if not (0.5 < g < 2.0) or abs((g - 1.0) * 128.0 + o) < min_change:
+    change = (g - 1.0) * 128.0 + o
+    if not (0.5 < g < 2.0) or abs(change) < min_change:
         return None
-    if g <= 1.0:
-        return cv2.convertScaleAbs(img_a, alpha=g, beta=o), img_b
-    return img_a, cv2.convertScaleAbs(img_b, alpha=1.0 / g, beta=-o / g)
+    if change < 0.0:     # addWeighted saturates (convertScaleAbs would mirror negative values)
+        return cv2.addWeighted(img_a, g, img_a, 0.0, o), img_b
+    return img_a, cv2.addWeighted(img_b, 1.0 / g, img_b, 0.0, -o / g)
 
 
 def lk_track(img_a: np.ndarray, img_b: np.ndarray, px_a: np.ndarray, guess_b: np.ndarray,
