@@ -44,8 +44,8 @@ class FrontendConfig:
     # at least lk_brightness_min grey levels at mid-grey (an affine fit, b = g a + o), the
     # pair is brought to one brightness and LK runs again from the first pass's result
     # (vio.frontend.tracker.brightness_matched). Renders with exposure changes (vio sim
-    # --exposure smooth, stereo): td error 2.04 / 0.58 -> 0.94 / 0.03 ms on seeds 201 / 202,
-    # sim14 6 stretches 7.15 -> 6.24 mm; real MH_01 stereo, 22 stretches, 5.47 -> 5.32 mm
+    # --exposure smooth, stereo): td error 2.04 / 0.58 -> 0.26 / 0.02 ms on seeds 201 / 202,
+    # sim14 6 stretches 7.15 -> 5.70 mm; real MH_01 stereo, 22 stretches, 5.47 -> 5.32 mm
     # (benchmarks/README.md, stop 58).
     lk_brightness: bool = True
     lk_brightness_min: float = 1.0
