@@ -83,7 +83,7 @@ MODE_DEFAULTS["features"] = {"backend": {"vision": {"reanchor": "point"}}}
 MODE_DEFAULTS["mono"]["backend"]["vision"]["reanchor"] = "point"
 MODE_DEFAULTS["mono"]["frontend"] = {"max_features": 200, "min_dist_px": 25}
 # mono tracks without the second LK pass after an exposure change (FrontendConfig.lk_brightness):
-# no gain measured on real images, real MH_05 mono from 33 starts (0, 5, ..., 160) log ratio
+# no gain measured on real images (with d314370's map), real MH_05 mono from 33 starts (0, 5, ..., 160) log ratio
 # +0.03 +- 0.05 (from frame 0 45 -> 67 mm), real MH_01 mono 11 stretches -0.02 +- 0.03, render
 # sim13 6 stretches 6.60 -> 6.98 mm; it costs the worker ~1.3 ms a frame there (41 of 300
 # frames of MH_05 tracked twice). The stereo modes take it (benchmarks/README.md, stop 58)
