@@ -182,11 +182,29 @@ def gate_bridged(est, features: FeatureFrame, pred: gtsam.NavState,
     return (pred if keep_pose else gtsam.NavState(T, pred.velocity())), out
 
 
-def within_hold(est, t_ns: int) -> bool:
-    """Whether an interval vision contradicted ended at most ``BridgeConfig.imu_check_hold_s``
-    before ``t_ns``."""
-    t = est.contradicted_t
+def _within(est, t: int | None, t_ns: int) -> bool:
+    """Whether ``t`` (ns; None: never) is at most ``BridgeConfig.imu_check_hold_s`` before ``t_ns``."""
     return t is not None and t_ns - t <= est.cfg.bridge.imu_check_hold_s * 1e9
+
+
+def within_hold(est, t_ns: int) -> bool:
+    """Whether an interval a factor source's alignment contradicted ended at most
+    ``BridgeConfig.imu_check_hold_s`` before ``t_ns``."""
+    return _within(est, est.contradicted_t, t_ns)
+
+
+def contradicts(bc, dist_m: float, ang_rad: float, dt_s: float = 0.0, held: bool = False) -> bool:
+    """Whether an alignment ``dist_m`` / ``ang_rad`` from the IMU prediction over ``dt_s``
+    contradicts the IMU (``BridgeConfig`` ``bc``; the landmark check's PnP pose, direct
+    mode's TrackFrame): at least ``imu_check_min_m`` and at most ``imu_check_max_deg``;
+    ``held`` (within ``imu_check_hold_s`` of a contradicted interval) a residual
+    acceleration ``2 d / dt^2`` of at least ``imu_check_hold_accel``: the held intervals
+    are short and the IMU's own error over one is a few mm."""
+    if not bc.imu_check:
+        return False
+    if held:
+        return 2.0 * dist_m / max(dt_s, 1e-3) ** 2 >= bc.imu_check_hold_accel
+    return dist_m >= bc.imu_check_min_m and float(np.degrees(ang_rad)) <= bc.imu_check_max_deg
 
 
 def imu_held(est, t_ns: int) -> bool:
@@ -236,22 +254,19 @@ def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
     with np.errstate(divide="ignore", invalid="ignore"):
         err = np.linalg.norm(q[:, :2] / q[:, 2:] - features.uv[seen], axis=1)
     frac = float(np.mean((q[:, 2] > 0) & (err <= thresh)))
-    fired = est.check_fired_t
-    after = fired is not None and features.t_ns - fired <= bc.imu_check_hold_s * 1e9
-    if frac > (bc.imu_check_hold_frac if after else bc.imu_check_max_frac):
+    if frac > (bc.imu_check_hold_frac if _within(est, est.check_fired_t, features.t_ns) else bc.imu_check_max_frac):
         return None
     T, out = locate(ids, pts, features, T_pred, T_b_c, thresh, bc.imu_check_min_inliers)
     if T is None:
         return None
     n_in = int(np.isin(out.ids, ids).sum())
     d = float(np.linalg.norm(T.translation() - T_pred.translation()))
-    rot = float(np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(T_pred.rotation().between(T.rotation())))))
+    rot = float(np.linalg.norm(gtsam.Rot3.Logmap(T_pred.rotation().between(T.rotation()))))
     if shift is not None:
         T = T.compose(shift.inverse())        # back to the keyframe's time
-    if n_in < max(bc.imu_check_min_inliers, bc.imu_check_min_frac * n) or (
-            d < bc.imu_check_min_m or rot > bc.imu_check_max_deg):
+    if n_in < max(bc.imu_check_min_inliers, bc.imu_check_min_frac * n) or not contradicts(bc, d, rot):
         return None
     est.check_fired_t = features.t_ns
     _report(est, est.k, est.k + 1, "the IMU prediction re-projects %.0f %% of %d window-landmark observations, "
-            "PnP %d at %.3f m / %.2f deg from it", 100 * frac, n, n_in, d, rot)
+            "PnP %d at %.3f m / %.2f deg from it", 100 * frac, n, n_in, d, float(np.degrees(rot)))
     return T

@@ -90,28 +90,27 @@ class Track:
         uv = self.obs[f].uv
         return uv if s is None else uv - (td + s[1]) * s[0]
 
-    def anchor_point(self, T_w_c: gtsam.Pose3, lam: float, td: float | None = None) -> np.ndarray:
+    def anchor_point(self, T_w_c: gtsam.Pose3, lam: float, td: float) -> np.ndarray:
         """The point (3,) at inverse depth ``lam`` (1/m) on the anchor observation's ray,
         in the frame ``T_w_c`` (the anchor camera's pose) maps into; ``td`` as in
         :func:`anchor_points`."""
-        uv = self.obs[self.anchor].uv if td is None else self.shifted_uv(self.anchor, td)
+        uv = self.shifted_uv(self.anchor, td)
         return T_w_c.transformFrom(np.array([uv[0], uv[1], 1.0]) / lam)
 
 
 def anchor_points(tracks: list[Track], lams: np.ndarray, cams: dict[int, gtsam.Pose3],
-                  td: float | None = None) -> np.ndarray:
+                  td: float) -> np.ndarray:
     """World points (N, 3) of ``tracks`` at inverse depths ``lams`` (N,) 1/m, each on its
     anchor observation's ray from its anchor camera ``cams[track.anchor]`` (T_w_c).
     ``td``: the td estimate (the td variable, s): the ray is that of the anchor
     observation moved to the keyframe's time as the factors move it
     (:meth:`Track.shifted_uv`), so the points are those the factors place (with td at
-    25 ms and the camera turning at 0.5 rad/s the raw ray is ~6 px off); None: raw rays."""
+    25 ms and the camera turning at 0.5 rad/s the raw ray is ~6 px off)."""
     if not tracks:
         return np.zeros((0, 3))
     M = {f: cams[f].matrix() for f in {tr.anchor for tr in tracks}}
     A = np.array([M[tr.anchor] for tr in tracks])
-    uv = (np.array([tr.obs[tr.anchor].uv for tr in tracks]) if td is None
-          else np.array([tr.shifted_uv(tr.anchor, td) for tr in tracks]))
+    uv = np.array([tr.shifted_uv(tr.anchor, td) for tr in tracks])
     ray = np.c_[uv, np.ones(len(tracks))] / np.asarray(lams, float)[:, None]
     return np.einsum("nij,nj->ni", A[:, :3, :3], ray) + A[:, :3, 3]
 

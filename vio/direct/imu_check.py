@@ -49,15 +49,3 @@ def window_guess(kfs: dict, vals: gtsam.Values, prev, T_w_cp: gtsam.Pose3, T_b_c
     pp = kfs[max(before)]
     return visual_guess(vals.atPose3(X(pp.k)).compose(T_b_c), T_w_cp, pp.t_ns, prev.t_ns, t_ns)
 
-
-def contradicts(bc, dist_m: float, ang_rad: float, dt_s: float, held: bool) -> bool:
-    """Whether a converged alignment ``dist_m`` / ``ang_rad`` from the IMU prediction over
-    ``dt_s`` contradicts the IMU (``BridgeConfig`` ``bc``): at least ``imu_check_min_m`` and
-    at most ``imu_check_max_deg``; ``held`` (within ``imu_check_hold_s`` of a contradicted
-    interval) a residual acceleration ``2 d / dt^2`` of at least ``imu_check_hold_accel``:
-    the held intervals are short and the IMU's own error over one is a few mm."""
-    if not bc.imu_check:
-        return False
-    if held:
-        return 2.0 * dist_m / max(dt_s, 1e-3) ** 2 >= bc.imu_check_hold_accel
-    return dist_m >= bc.imu_check_min_m and float(np.degrees(ang_rad)) <= bc.imu_check_max_deg

@@ -48,11 +48,11 @@ import numpy as np
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch
 from factors.photometric_host import HostParams, HostPoints, HostTiming, StereoHost, host_factor
-from vio.backend.bridge import within_hold
+from vio.backend.bridge import contradicts, within_hold
 from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
-from vio.direct.imu_check import contradicts, pose_offset, window_guess
+from vio.direct.imu_check import pose_offset, window_guess
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
@@ -282,7 +282,7 @@ class PhotometricSource:
     def _retry(self, k: int, kd: KeyframeData, prev: KeyframeData, ab_p: np.ndarray, T_w_cp: gtsam.Pose3,
                v: gtsam.Values) -> np.ndarray | None:
         """After a failed TrackFrame: once more without the IMU prior from the visual guess
-        (``vio.direct.imu_check``). Where it converges as :func:`contradicts` says (3 cm from
+        (``vio.direct.imu_check``). Where it converges as ``bridge.contradicts`` says (3 cm from
         the IMU prediction, within 1 degree), the IMU is contradicted: its pose becomes
         X(k)'s guess and the affine guess of A(k) is returned; else None."""
         T_b_c = self.rig.T_b_c
@@ -306,7 +306,7 @@ class PhotometricSource:
         return np.array([res.a, res.b])
 
     def _contradicts(self, k: int, dist: float, ang: float, dt_ns: int, held: bool) -> bool:
-        """:func:`vio.direct.imu_check.contradicts` for keyframe k's converged TrackFrame,
+        """:func:`vio.backend.bridge.contradicts` for keyframe k's converged TrackFrame,
         ``dist`` m / ``ang`` rad from the IMU prediction over ``dt_ns``, ``held``: within the
         IMU hold; recorded for :meth:`imu_contradicted`."""
         if not contradicts(self.est.cfg.bridge, dist, ang, dt_ns * 1e-9, held):
