@@ -190,6 +190,22 @@ def test_an_exposure_change_is_tracked_through(static_set, gain: float, offset: 
     assert kept[False] < 0.7 and median[False] > 1.3 * median[True], (kept, median)
 
 
+def test_window_means_are_the_box_filter_at_the_points(static_set) -> None:
+    """``window_means`` gives exactly ``cv2.blur``'s values at the points (rounded grey
+    levels, BORDER_REFLECT_101 at the edges) without filtering the whole image."""
+    from vio.frontend.tracker import window_means
+    _, _, _, frames0, _ = static_set
+    img = gray(frames0[0][1])
+    rng = np.random.default_rng(5)
+    h, w = img.shape
+    px = np.vstack([np.column_stack([rng.uniform(-2, w + 1, 3000), rng.uniform(-2, h + 1, 3000)]),
+                    [[0, 0], [1, 2], [w - 1, h - 1], [w - 2, 0], [3, h - 3]]])
+    ij = np.clip(np.round(px).astype(np.int64), 0, [w - 1, h - 1])
+    for patch in (3, 7):
+        ref = cv2.blur(img, (patch, patch))[ij[:, 1], ij[:, 0]].astype(np.float64)
+        np.testing.assert_array_equal(window_means(img, px, patch), ref)
+
+
 def test_brightness_match_saturates_instead_of_mirroring() -> None:
     """``brightness_matched`` fits ``b = g a + o`` at the matched windows and maps the
     brighter image down: grey levels that fall below 0 become 0, not their absolute value
