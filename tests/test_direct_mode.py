@@ -263,7 +263,8 @@ def test_photometric_window_lost_is_restarted_and_reinitialized(sim_exposure, mo
     cfg = _small(mode == "hybrid")
     d, be = cfg.direct, cfg.backend
     if mode == "direct":
-        cfg = dataclasses.replace(cfg, direct=dataclasses.replace(d, points=dataclasses.replace(d.points, lost_rms=0.5)))
+        cfg = dataclasses.replace(cfg, direct=dataclasses.replace(
+            d, points=dataclasses.replace(d.points, lost_rms=0.5)))
     else:
         cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
             be, health=dataclasses.replace(be.health, max_speed=0.05)))
@@ -302,18 +303,23 @@ def test_photometric_reinitialization_without_the_right_camera(sim_exposure, tmp
 
 
 @pytest.mark.slow
-def test_accelerometer_offset_contradicted_by_trackframe_is_bridged(sim_exposure, tmp_path):
+@pytest.mark.parametrize("at,bound", [(1.5, 0.02), (2.0, 0.04)])
+def test_accelerometer_offset_contradicted_by_trackframe_is_bridged(sim_exposure, tmp_path, at, bound):
     """+6 m/s^2 on the accelerometer for 0.5 s from 1.5 s: TrackFrame, run again from the
     previous interval's camera motion where it fails against the IMU prior, converges away
     from the IMU prediction; the interval and those within ``imu_check_hold_s`` get the
     motion prior instead of their IMU factor (``vio.direct.imu_check``), and direct mode
-    stays at millimetres (measured 3.6 mm; clean 1.5 mm; without the check 1.21 m)."""
+    stays at millimetres (measured 3.6 mm; clean 1.5 mm; without the check 1.21 m).
+    From 2.0 s the fault's first keyframe interval is 0.25 s long: TrackFrame converges
+    with the IMU prior 0.30 m from the truth, and without the prior (run again because it
+    stopped away from the prediction) at 2 mm. Measured 22.6 mm, the frames between the
+    keyframes before the check fired (IMU-propagated) 20-170 mm; 80 mm with the prior's pose."""
     from vio.inject import copy_dataset, imu_offset
     root = copy_dataset(sim_exposure.root, tmp_path / "off")
-    assert imu_offset(root, 1.5, 0.5, (6.0, 0.0, 0.0)) == 100
+    assert imu_offset(root, at, 0.5, (6.0, 0.0, 0.0)) == 100
     data = load_euroc(root)
     res = run_dataset(data, _small(False), mode="direct")
     assert res.imu_contradicted >= 2 and res.restarts == 0
     assert len(res.outputs) == len(data.cam0.t_ns)
     e = evaluate(*res.arrays(), data.groundtruth)
-    assert e.ate_rmse < 0.02, f"ATE {e.ate_rmse:.4f} m"
+    assert e.ate_rmse < bound, f"ATE {e.ate_rmse:.4f} m"

@@ -52,7 +52,7 @@ from vio.backend.bridge import contradicts, within_hold
 from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
-from vio.direct.imu_check import pose_offset, window_guess
+from vio.direct.imu_check import free_alignment, pose_offset, window_guess
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
@@ -263,8 +263,8 @@ class PhotometricSource:
             if ab is not None:
                 kd.release_pyramid()
                 return ab
-        kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
         if res is None:
+            kd.release_pyramid()
             self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
             return ab_p
         T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
@@ -272,6 +272,13 @@ class PhotometricSource:
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
         if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, ang, dt_ns, held):
             used = True      # converged against the IMU prior, and still away from the prediction
+            free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p)
+            if free is not None and free[0].rmse <= res.rmse:   # the prior is the contradicted IMU (imu_check)
+                res, T_tr = free
+                dist, ang = pose_offset(T_pred, T_tr)
+                if not contradicts(self.est.cfg.bridge, dist, ang, dt_ns * 1e-9):
+                    self.contradicted_k = None   # without the prior, vision agrees with the IMU
+        kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
         if used:
             v.update(X(k), T_tr)
         self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, res.ok, used, dist, ang, ms))
@@ -285,19 +292,12 @@ class PhotometricSource:
         (``vio.direct.imu_check``). Where it converges as ``bridge.contradicts`` says (3 cm from
         the IMU prediction, within 1 degree), the IMU is contradicted: its pose becomes
         X(k)'s guess and the affine guess of A(k) is returned; else None."""
-        T_b_c = self.rig.T_b_c
-        guess = window_guess(self.kfs, self.est.values, prev, T_w_cp, T_b_c, kd.t_ns)
-        if not self.est.cfg.bridge.imu_check or guess is None:
-            return None
         t0 = time.perf_counter()
-        try:
-            res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), guess, ab_p,
-                              self.cfg.track, None)
-        except (ArithmeticError, np.linalg.LinAlgError):
+        free = free_alignment(self.cfg, self.kfs, self.est.values, prev, kd, T_w_cp, self.rig.T_b_c, ab_p) \
+            if self.est.cfg.bridge.imu_check else None
+        if free is None:
             return None
-        if not res.ok:
-            return None
-        T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
+        res, T_tr = free
         dist, ang = pose_offset(v.atPose3(X(k)), T_tr)
         if not self._contradicts(k, dist, ang, kd.t_ns - prev.t_ns, False):
             return None
