@@ -145,7 +145,8 @@ def _run(job: Job) -> dict:
     write_tum(traj, t, [o.T_w_b for o in res.outputs])
     ms = np.array([o.seconds for o in res.outputs]) * 1e3
     out.update(trajectory=str(traj), td_ms=res.outputs[-1].td_s * 1e3, ms_per_frame=float(ms.mean()),
-               realtime_factor=res.data_s / res.wall_s if res.wall_s > 0 else None, init_time_s=res.init.decided_s if res.init else None)
+               realtime_factor=res.data_s / res.wall_s if res.wall_s > 0 else None,
+               init_time_s=res.init.decided_s if res.init else None)
     out.update(_evaluate(t, p, q, data.groundtruth, runs / f"{job.id}.png", mode))
     return out
 

@@ -11,7 +11,8 @@ visual-inertial alignment, solved here without a separate SfM stage).
    ``x`` every ``rho`` has a closed form (least squares of ``[m_j]x P_j = 0``, whose size
    is the angular error since ``P_j`` is scaled by the anchor depth), so ``x`` minimises
    the Huber-robust reprojection errors of the reduced problem (variable projection):
-   from three starts at the gyro bias of the visual rotations (``gyro_init``), then with ``bg`` free (prior) after dropping outliers.
+   from three starts at the gyro bias of the visual rotations (``gyro_init``), then with
+   ``bg`` free (prior) after dropping outliers.
    ``|g0|`` stays free; its deviation from ``g`` is a consistency check.
 3. A batch Levenberg-Marquardt over the window (``CombinedImuFactor`` + landmark factors,
    inlier observations) refines poses, velocities, inverse depths and IMU biases.
