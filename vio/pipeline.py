@@ -379,7 +379,7 @@ class Pipeline:
             T, v, b = self.est.latest()
             ids, pts = self.est.landmarks_w()
         else:
-            nav = self.est.predict()
+            nav = self.est.frame_state(pkt.features, pkt.imu.gyro[-1] if len(pkt.imu.gyro) else None, pkt)
             T, v = nav.pose(), nav.velocity()
             b, ids, pts = self.est.latest()[2], None, None
         out = FrameOutput(pkt.index, pkt.t_ns, T, np.asarray(v), b, is_kf, still,

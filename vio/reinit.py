@@ -68,7 +68,7 @@ from vio.imu import rotate
 log = logging.getLogger(__name__)
 
 COUNTERS = ("divergences", "recoveries", "qr_resolves", "point_holds", "bridged", "realigned", "td_reanchors",
-            "reiterations", "imu_contradictions", "t_start")
+            "reiterations", "imu_contradictions", "frame_contradictions", "t_start")
 
 
 def moved_to(state: InitialState, T_ref: gtsam.Pose3) -> InitialState:

@@ -51,6 +51,9 @@ class RunResult:
     """Keyframe updates iterated again after an overshoot (``SolverConfig.reiterate_chi2``)."""
     imu_contradicted: int = 0
     """Keyframe intervals whose IMU readings vision contradicted, bridged (``BridgeConfig.imu_check``)."""
+    frames_contradicted: int = 0
+    """Frames between keyframes output at their PnP pose, vision contradicting their IMU
+    prediction (``vio.backend.bridge.frame_state``)."""
     imu_gaps: int = 0
     imu_gap_s: float = 0.0
     imu_dropped: int = 0
@@ -304,6 +307,7 @@ def _counters(res: RunResult, pipe, live: bool) -> None:
     res.realigns = pipe.est.realigned
     res.reiterations = pipe.est.reiterations
     res.imu_contradicted = pipe.est.imu_contradictions
+    res.frames_contradicted = pipe.est.frame_contradictions
     res.qr_resolves = pipe.est.qr_resolves
     res.point_holds = pipe.est.point_holds
     res.imu_gaps = len(pipe.imu_gaps)
@@ -346,6 +350,8 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
                 if res.frames_dropped else "")
              + (f", {res.imu_contradicted} IMU interval(s) contradicted by vision, bridged"
                 if res.imu_contradicted else "")
+             + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
+                if res.frames_contradicted else "")
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
              + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
              + (f", {res.reiterations} update(s) iterated again" if res.reiterations else "")]

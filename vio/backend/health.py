@@ -103,7 +103,7 @@ class BridgeConfig:
     ``imu_check_min_m`` away from the prediction and within ``imu_check_max_deg`` of its
     attitude, is bridged as a gap is: its IMU readings contradict vision
     (``vio.backend.bridge.imu_contradicted``). The prediction is compared at the images'
-    exposure (``Estimator._exposure_shift``: the td estimate not yet in the keyframe's
+    exposure (``vio.backend.bridge.exposure_shift``: the td estimate not yet in the keyframe's
     time, the rolling shutter's readout): issue 20's tracks at an unknown td of -20 / +25
     ms fired 3 / 7 times without it and lost 15-25 % of ATE. A disagreement in attitude
     beyond ``imu_check_max_deg`` is a timing error, not an accelerometer's (10 ms at 3
@@ -121,6 +121,9 @@ class BridgeConfig:
     interval's prediction starts from the PnP pose, so the fault shows less; real MH_01
     stereo, 6 m/s^2 from frame 180: shares of 0.24-0.35 between the contradicted
     intervals, 18.0 -> 9.0 mm.)
+    ``frame_check``: frames between keyframes get the same test against their IMU
+    prediction and, contradicted, are output at their PnP pose
+    (``vio.backend.bridge.frame_state``).
     (Until stop 38 the preintegrated still readings were the factor too; their gravity
     term tied position to attitude: position sigma 0.28 m over 0.5 s, 17 m over 3 s.)"""
 
@@ -140,6 +143,7 @@ class BridgeConfig:
     imu_check_hold_s: float = 0.3
     imu_check_hold_frac: float = 0.5
     imu_check_hold_accel: float = 3.0
+    frame_check: bool = True
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("accel_density", "gyro_density", "step_s", "pnp_min_inliers", "pred_gate_px",
