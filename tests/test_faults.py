@@ -543,17 +543,22 @@ def test_direct_mode_keeps_its_points_with_the_right_camera_covered(tmp_path):
     points take their depths from the previous keyframe (``vio.direct.temporal``), so
     direct mode goes on without a restart at 3.9 mm (stereo depths alone: 19.5 mm and a
     restart once the points were lost)."""
+    res, ate = _real_mh01_fault(tmp_path, "cam1:cover:60:40", "direct", 170)
+    assert res.restarts == 0 and len(res.outputs) == 170
+    assert ate < 0.008, f"direct, cam1 covered 2 s: ATE {ate:.4f} m"
+
+
+def _real_mh01_fault(tmp_path: Path, fault: str, mode: str, frames: int):
+    """The first ``frames`` frames of real MH_01 with ``fault`` (``bench_image_faults``'s
+    ``CAMS:KIND:FRAME:N``) in ``mode``'s defaults: (RunResult, ATE m)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     from bench_image_faults import faulty_copy
     from vio.evaluation import evaluate
     from vio.io.euroc import load_euroc
     from vio.run import default_config, run_dataset
-    root = faulty_copy(shared("euroc_MH_01_stereo_synimu"), "cam1:cover:60:40", tmp_path / "cov")
-    data = load_euroc(root)
-    res = run_dataset(data, default_config("direct"), max_frames=170, mode="direct")
-    e = evaluate(*res.arrays(), data.groundtruth)
-    assert res.restarts == 0 and len(res.outputs) == 170
-    assert e.ate_rmse < 0.008, f"direct, cam1 covered 2 s: ATE {e.ate_rmse:.4f} m"
+    data = load_euroc(faulty_copy(shared("euroc_MH_01_stereo_synimu"), fault, tmp_path / "fault"))
+    res = run_dataset(data, default_config(mode), max_frames=frames, mode=mode)
+    return res, evaluate(*res.arrays(), data.groundtruth).ate_rmse
 
 
 @pytest.mark.slow
@@ -563,15 +568,7 @@ def test_frames_between_keyframes_of_an_accelerometer_fault_are_placed_by_vision
     prediction vision contradicts is output at its PnP pose (``bridge.frame_state``).
     First 100 frames: 6.7 mm, 7 frames placed by PnP (without the frame check 22.3 mm:
     the predictions between keyframes drifted 44-148 mm)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from bench_image_faults import faulty_copy
-    from vio.evaluation import evaluate
-    from vio.io.euroc import load_euroc
-    from vio.run import default_config, run_dataset
-    root = faulty_copy(shared("euroc_MH_01_stereo_synimu"), "imu:offset:40:20", tmp_path / "off")
-    data = load_euroc(root)
-    res = run_dataset(data, default_config("stereo"), max_frames=100, mode="stereo")
-    e = evaluate(*res.arrays(), data.groundtruth)
+    res, ate = _real_mh01_fault(tmp_path, "imu:offset:40:20", "stereo", 100)
     assert res.restarts == 0 and len(res.outputs) == 100
     assert res.imu_contradicted >= 2 and res.frames_contradicted >= 3
-    assert e.ate_rmse < 0.012, f"stereo, accelerometer offset from frame 40: ATE {e.ate_rmse:.4f} m"
+    assert ate < 0.012, f"stereo, accelerometer offset from frame 40: ATE {ate:.4f} m"
