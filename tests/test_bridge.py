@@ -193,3 +193,26 @@ def test_a_frame_vision_contradicts_is_output_at_its_pnp_pose():
     est, fr, pred, _ = _contradiction_case(gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])))
     est.cfg = est.cfg.__class__(bridge=est.cfg.bridge.__class__(imu_check=False))
     assert frame_state(est, fr, pred) is pred and frame_state(est, None, pred) is pred
+
+
+def test_the_live_frame_path_checks_its_prediction_on_the_reported_landmarks():
+    """``vio.live.checked``: with ``--live`` each frame's pose is the IMU prediction from the
+    newest state the backend worker reported; that state carries its window landmarks, so
+    a prediction 12 cm off is output at the PnP pose there too (counted); a good one, and
+    a state without landmarks, leave the prediction as it is."""
+    from types import SimpleNamespace
+    from vio.live import KeyState, checked
+    from vio.pipeline import PipelineConfig
+    est, fr, pred, T_w_b = _contradiction_case(gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])))
+    ids, pts = est.landmarks_w()
+    state = KeyState(0, T_w_b.matrix(), np.zeros(3), np.zeros(6), 0.0, est.extrinsic().matrix(), len(ids), 3, 0,
+                     ids, pts)
+    pipe = SimpleNamespace(state=state, cfg=PipelineConfig(), frame_contradictions=0,
+                           cam=SimpleNamespace(intrinsics=(460.0, 460.0, 376.0, 240.0), line_time_s=0.0))
+    pkt = SimpleNamespace(t_ns=fr.t_ns, stamp_ns=fr.t_ns, features=fr, imu=SimpleNamespace(gyro=np.zeros((1, 3))))
+    nav = checked(pipe, pred, pkt)
+    assert np.linalg.norm(nav.pose().translation() - T_w_b.translation()) < 0.01 and pipe.frame_contradictions == 1
+    _, _, good, _ = _contradiction_case(gtsam.Pose3(gtsam.Rot3.Rz(0.002), np.array([0.004, 0.0, 0.0])))
+    assert checked(pipe, good, pkt) is good and pipe.frame_contradictions == 1
+    pipe.state = KeyState(0, T_w_b.matrix(), np.zeros(3), np.zeros(6), 0.0, est.extrinsic().matrix(), 0, 3, 0)
+    assert checked(pipe, pred, pkt) is pred

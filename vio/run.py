@@ -294,11 +294,13 @@ def _log_above(bar):
 
 
 def _counters(res: RunResult, pipe, live: bool) -> None:
-    """The run's counters from the pipeline into ``res`` (keyframes and solver recoveries
-    only when ``live``: the live backend's other counters stay in its process)."""
+    """The run's counters from the pipeline into ``res`` (keyframes, solver recoveries and
+    the frames placed by PnP only when ``live``: the live backend's other counters stay in
+    its process)."""
     res.keyframes = pipe.n_keyframes
     res.recoveries = pipe.recoveries if live else pipe.est.recoveries
     if live:
+        res.frames_contradicted = pipe.frame_contradictions
         return
     res.init = pipe.init_info
     res.init_wait = pipe.init_wait

@@ -275,16 +275,23 @@ def frame_state(est, features: FeatureFrame | None, pred: gtsam.NavState,
 def exposure_shift(est, pred: gtsam.NavState, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray | None,
                    frame, features: FeatureFrame | None) -> gtsam.Pose3:
     """The body's motion (T_b(t)_b(t + d)) from a frame's time ``t`` to its images'
-    exposure, ``d`` = the td estimate less what the frame's time holds
-    (``Estimator.td_obs`` of the packet ``frame``), plus the rolling shutter's readout to
-    the observations' median row, at the predicted velocity and the (bias-corrected)
-    ``gyro`` rate: what :func:`imu_contradicted` and :func:`frame_state` move ``pred`` by."""
+    exposure (:func:`shift_by`), ``d`` = the td estimate less what the frame's time holds
+    (``Estimator.td_obs`` of the packet ``frame``): what :func:`imu_contradicted` and
+    :func:`frame_state` move ``pred`` by."""
     if gyro is None or not est.values.exists(TD):
         return gtsam.Pose3()
-    d = float(est.values.atVector(TD)[0]) - est.td_obs(frame)
+    return shift_by(float(est.values.atVector(TD)[0]) - est.td_obs(frame), pred, bias, gyro, features,
+                    est.cam.line_time_s)
+
+
+def shift_by(d: float, pred: gtsam.NavState, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray,
+             features: FeatureFrame | None, line_time_s: float) -> gtsam.Pose3:
+    """The body's motion over ``d`` s plus the rolling shutter's readout (``line_time_s``
+    per row) to ``features``' median row, at ``pred``'s velocity and the (bias-corrected)
+    ``gyro`` rate (rad/s, body)."""
     rows = None if features is None else features.row[np.isfinite(features.row)]
-    if est.cam.line_time_s and rows is not None and len(rows):
-        d += est.cam.line_time_s * float(np.median(rows))
+    if line_time_s and rows is not None and len(rows):
+        d += line_time_s * float(np.median(rows))
     if not np.isfinite(d):
         return gtsam.Pose3()
     w = np.asarray(gyro, float) - bias.gyroscope()
