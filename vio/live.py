@@ -12,9 +12,10 @@ estimate, and while the worker lags behind, frames are predicted from an older
 keyframe; which state a frame sees depends on timing, so the online trajectory is not
 deterministic (the keyframe states are). The reported state carries its window's
 landmarks, and a frame whose prediction vision contradicts is output at its PnP pose, as
-in-process (:func:`checked`; real MH_01 stereo, +6 m/s^2 over frames 40-59: 22.2 -> 6.5 mm). Frames before the worker's first state get
-no output. A recorded dataset is replayed at its camera rate (real time). The default
-(``live = False``) stays deterministic.
+in-process (:func:`checked`; real MH_01 stereo, +6 m/s^2 over frames 40-59: 22.2 ->
+6.5 mm). Frames before the worker's first state get no output. A recorded dataset is
+replayed at its camera rate (real time). The default (``live = False``) stays
+deterministic.
 
 The GIL is held through ``ISAM2.update`` (measured: a 0.47 s update blocks another
 thread for 0.47 s), which is why the backend needs its own process, not a thread.
