@@ -11,8 +11,9 @@ copy of ``DATA`` (default the real MH_01 stereo set; ``vio.inject.image_fault``:
 images are links to the source), and each mode runs on it from its first frame;
 ``imu:offset:FRAME:N`` adds 6 m/s^2 to the accelerometer x over those frames
 (``vio.inject.imu_offset``), ``imu:gap:FRAME:N`` removes their IMU samples. Printed per
-fault and mode: ATE (mm, SE3-aligned), divergence restarts, re-initializations and keyframe
-intervals whose IMU vision contradicted (``BridgeConfig.imu_check``); the first row is the
+fault and mode: ATE (mm, SE3-aligned), divergence restarts, re-initializations, keyframe
+intervals whose IMU vision contradicted (``BridgeConfig.imu_check``) and frames between
+keyframes output at their PnP pose (``BridgeConfig.frame_check``); the first row is the
 unaltered folder. The default faults are stop 55/56's table
 (benchmarks/README.md): 1 s black / blurred / over-exposed in both cameras and 2 s of a
 covered camera from frame 150, the right camera covered for 2 s from frames 40, 100, 200,
@@ -63,7 +64,8 @@ def run(root: Path, mode: str, config: str | None) -> str:
     data = load_euroc(root)
     res = run_dataset(data, load_config(config, mode=mode), mode=mode)
     e = evaluate(*res.arrays(), data.groundtruth)
-    return f"{e.ate_rmse * 1e3:8.1f} ({res.restarts}/{res.reinits}/{res.imu_contradicted})"
+    return (f"{e.ate_rmse * 1e3:8.1f} ({res.restarts}/{res.reinits}/{res.imu_contradicted}/"
+            f"{res.frames_contradicted})")
 
 
 def main() -> None:
@@ -76,7 +78,7 @@ def main() -> None:
     logging.disable(logging.WARNING)
     modes = args.modes.split(",")
     print(f"{'fault':28s}" + "".join(f"{m:>18s}" for m in modes)
-          + "   ATE mm (restarts/re-initializations/IMU intervals contradicted)")
+          + "   ATE mm (restarts/re-initializations/IMU intervals contradicted/frames placed by PnP)")
     with tempfile.TemporaryDirectory() as tmp:
         for fault in ["none", *args.faults.split(",")]:
             root = Path(args.data) if fault == "none" else faulty_copy(Path(args.data), fault, Path(tmp) / "copy")
