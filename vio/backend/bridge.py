@@ -234,19 +234,12 @@ def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
     warning. ``shift``: the body's motion from the keyframe's time to the images' exposure
     (the td estimate not yet in the keyframe's time): PnP poses the camera at the exposure,
     and at 1.5 m/s 25 ms of td are 3.75 cm."""
-    if features is None:
-        return None
-    T_pred = pred.pose() if shift is None else pred.pose().compose(shift)
-    found = _pnp_contradicts(est, features, T_pred, est.landmarks_w)
+    found = _pnp_contradicts(est, features, pred, shift, est.landmarks_w)
     if found is None:
         return None
-    T, frac, n, n_in, d, rot = found
-    if shift is not None:
-        T = T.compose(shift.inverse())        # back to the keyframe's time
     est.check_fired_t = features.t_ns
-    _report(est, est.k, est.k + 1, "the IMU prediction re-projects %.0f %% of %d window-landmark observations, "
-            "PnP %d at %.3f m / %.2f deg from it", 100 * frac, n, n_in, d, float(np.degrees(rot)))
-    return T
+    _report(est, est.k, est.k + 1, "the IMU prediction " + _EVIDENCE, *found[1])
+    return found[0]
 
 
 def frame_state(est, features: FeatureFrame | None, pred: gtsam.NavState,
@@ -258,18 +251,13 @@ def frame_state(est, features: FeatureFrame | None, pred: gtsam.NavState,
     on its own. Between the keyframes of an accelerometer fault (real MH_01 stereo,
     +6 m/s^2 from frame 40) the prediction drifted 44-148 mm while the keyframes stayed
     within 7 mm. ``shift``: as for :func:`imu_contradicted`."""
-    if features is None or not (est.cfg.bridge.imu_check and est.cfg.bridge.frame_check):
-        return pred
-    T_pred = pred.pose() if shift is None else pred.pose().compose(shift)
-    found = _pnp_contradicts(est, features, T_pred, est.frame_points)
+    found = _pnp_contradicts(est, features, pred, shift, est.frame_points) if est.cfg.bridge.frame_check else None
     if found is None:
         return pred
-    T = found[0] if shift is None else found[0].compose(shift.inverse())
     est.frame_contradictions += 1
-    log.info("t=%d ns: the IMU-propagated pose re-projects %.0f %% of %d window-landmark observations, PnP "
-             "%d at %.3f m / %.2f deg from it: the frame's output is the PnP pose", features.t_ns,
-             100 * found[1], found[2], found[3], found[4], float(np.degrees(found[5])))
-    return gtsam.NavState(T, pred.velocity())
+    log.info("t=%d ns: the IMU-propagated pose " + _EVIDENCE + ": the frame's output is the PnP pose",
+             features.t_ns, *found[1])
+    return gtsam.NavState(found[0], pred.velocity())
 
 
 def exposure_shift(est, pred: gtsam.NavState, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray | None,
@@ -298,15 +286,22 @@ def shift_by(d: float, pred: gtsam.NavState, bias: gtsam.imuBias.ConstantBias, g
     return gtsam.Pose3(gtsam.Rot3.Expmap(w * d), pred.pose().rotation().unrotate(pred.velocity()) * d)
 
 
-def _pnp_contradicts(est, features: FeatureFrame, T_pred: gtsam.Pose3, landmarks) -> tuple | None:
-    """(``T_w_b`` by RANSAC PnP on the window's landmarks (``landmarks()``: ids (N,), world
-    points (N, 3)), the share of ``features``' observations of them the predicted body pose
-    ``T_pred`` re-projects within ``outlier_px``, their count, PnP's inliers among them, its
-    distance (m) and angle (rad) from ``T_pred``) where vision contradicts the prediction
-    (:func:`imu_contradicted`), else None."""
+_EVIDENCE = "re-projects %.0f %% of %d window-landmark observations, PnP %d at %.3f m / %.2f deg from it"
+"""What :func:`_pnp_contradicts` found, as the checks log it."""
+
+
+def _pnp_contradicts(est, features: FeatureFrame | None, pred: gtsam.NavState, shift: gtsam.Pose3 | None,
+                     landmarks) -> tuple | None:
+    """Where vision contradicts the IMU prediction ``pred`` moved by ``shift`` to the images'
+    exposure (:func:`imu_contradicted`): (``T_w_b`` by RANSAC PnP on the window's landmarks
+    (``landmarks()``: ids (N,), world points (N, 3)), back at ``pred``'s time; the
+    :data:`_EVIDENCE` values: the share (%) of ``features``' observations of them the
+    prediction re-projects within ``outlier_px``, their count, PnP's inliers among them,
+    its distance (m) and angle (deg) from the prediction); else None."""
     bc = est.cfg.bridge
-    if not bc.imu_check or len(features.ids) < bc.imu_check_min_inliers:
+    if not bc.imu_check or features is None or len(features.ids) < bc.imu_check_min_inliers:
         return None
+    T_pred = pred.pose() if shift is None else pred.pose().compose(shift)
     ids, pts = landmarks()
     if len(ids) < bc.imu_check_min_inliers:
         return None
@@ -333,4 +328,6 @@ def _pnp_contradicts(est, features: FeatureFrame, T_pred: gtsam.Pose3, landmarks
     rot = float(np.linalg.norm(gtsam.Rot3.Logmap(T_pred.rotation().between(T.rotation()))))
     if n_in < max(bc.imu_check_min_inliers, bc.imu_check_min_frac * n) or not contradicts(bc, d, rot):
         return None
-    return T, frac, n, n_in, d, rot
+    if shift is not None:
+        T = T.compose(shift.inverse())        # back to the prediction's time
+    return T, (100 * frac, n, n_in, d, float(np.degrees(rot)))
