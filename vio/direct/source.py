@@ -281,6 +281,7 @@ class PhotometricSource:
         kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
         if used:
             v.update(X(k), T_tr)
+        ms = (time.perf_counter() - t0) * 1e3      # with the prior-free run, where there was one
         self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, res.ok, used, dist, ang, ms))
         if not res.ok:
             log.warning("TrackFrame failed at keyframe %d: rmse %.1f (IMU prediction kept)", k, res.rmse)
