@@ -106,6 +106,9 @@ class TrackConfig:
     alignment runs once more without the prior from the previous interval's camera motion
     (``vio.direct.imu_check``); converged far from the IMU prediction, the keyframe
     interval's IMU is contradicted and bridged (``BridgeConfig.imu_check``).
+    ``window_cell_px``: the keyframe tracked against also carries the window's other
+    hosts' points at their refined depths, one point per cell of that size
+    (``vio.direct.coarse_ref``); 0: its own points only.
     """
 
     enabled: bool = True
@@ -133,8 +136,11 @@ class TrackConfig:
     prior_trans_sigma: float = 0.001
     prior_vel_sigma: float = 0.02
     retry_visual: bool = True
+    window_cell_px: float = 32.0
 
     def __post_init__(self) -> None:
+        if self.window_cell_px < 0:
+            raise ValueError(f"TrackConfig.window_cell_px must be >= 0, got {self.window_cell_px}")
         if min(self.prior_rot_sigma, self.prior_trans_sigma) <= 0 or self.prior_vel_sigma < 0:
             raise ValueError("TrackConfig: prior sigmas must be positive")
         if self.levels < 1 or len(self.iters) != self.levels:

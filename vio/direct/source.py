@@ -13,8 +13,8 @@ Per keyframe k (``prepare_update``):
 
 1. hosts whose keyframe leaves the window are forgotten (the smoother marginalizes
    their factor with X(host));
-2. TrackFrame (seed Algorithm 3) aligns keyframe k to the previous keyframe from the
-   IMU prediction; its pose becomes the initial guess of X(k) when it converged and
+2. TrackFrame (seed Algorithm 3) aligns keyframe k to the previous keyframe (its points
+   and the window's, ``vio.direct.coarse_ref``) from the IMU prediction; its pose becomes the initial guess of X(k) when it converged and
    agrees with the prediction (``PointsConfig.track_gate_*``, off by default), its
    affine the guess of A(k); its result is kept in ``tracks`` (failure signal);
 3. every host with fewer than ``max_targets`` targets whose live points are at least
@@ -53,6 +53,7 @@ from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
 from vio.direct.imu_check import free_alignment, pose_offset, window_guess
+from vio.direct.coarse_ref import window_reference
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
@@ -249,9 +250,9 @@ class PhotometricSource:
             T_init = window_guess(self.kfs, vals, prev, T_w_cp, T_b_c, kd.t_ns) or T_init
         prior = None if held else MotionPrior.from_imu(T_init, self.est.pim, dt_ns * 1e-9, self.cfg.track)
         t0 = time.perf_counter()
+        ref = self._reference(prev, ab_p, T_w_cp)
         try:
-            res = track_frame(prev.reference(ab_p, self.cfg), kd.pyramid(self.cfg.track.levels), T_init, ab_p,
-                              self.cfg.track, prior)
+            res = track_frame(ref, kd.pyramid(self.cfg.track.levels), T_init, ab_p, self.cfg.track, prior)
         except (ArithmeticError, np.linalg.LinAlgError) as exc:   # a numerical failure is a failure
             res = None
             log.warning("TrackFrame failed at keyframe %d (%s: %s); IMU prediction kept", k,
@@ -259,12 +260,12 @@ class PhotometricSource:
         ms = (time.perf_counter() - t0) * 1e3
         # held, the run above was already the prior-free one from the visual guess
         if (res is None or not res.ok) and self.cfg.track.retry_visual and not held:
-            ab = self._retry(k, kd, prev, ab_p, T_w_cp, v)
+            ab = self._retry(k, kd, prev, ab_p, T_w_cp, v, ref)
             if ab is not None:
-                kd.release_pyramid()
+                self._release(kd)
                 return ab
         if res is None:
-            kd.release_pyramid()
+            self._release(kd)
             self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
             return ab_p
         T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
@@ -272,13 +273,13 @@ class PhotometricSource:
         used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
         if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, ang, dt_ns, held):
             used = True      # converged against the IMU prior, and still away from the prediction
-            free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p)
+            free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p, ref)
             if free is not None and free[0].rmse <= res.rmse:   # the prior is the contradicted IMU (imu_check)
                 res, T_tr = free
                 dist, ang = pose_offset(T_pred, T_tr)
                 if not contradicts(self.est.cfg.bridge, dist, ang, dt_ns * 1e-9):
                     self.contradicted_k = None   # without the prior, vision agrees with the IMU
-        kd.release_pyramid()          # its reference (built by the keyframe worker) is kept
+        self._release(kd)
         if used:
             v.update(X(k), T_tr)
         ms = (time.perf_counter() - t0) * 1e3      # with the prior-free run, where there was one
@@ -288,13 +289,13 @@ class PhotometricSource:
         return np.array([res.a, res.b]) if res.ok else ab_p
 
     def _retry(self, k: int, kd: KeyframeData, prev: KeyframeData, ab_p: np.ndarray, T_w_cp: gtsam.Pose3,
-               v: gtsam.Values) -> np.ndarray | None:
+               v: gtsam.Values, ref) -> np.ndarray | None:
         """After a failed TrackFrame: once more without the IMU prior from the visual guess
         (``vio.direct.imu_check``). Where it converges as ``bridge.contradicts`` says (3 cm from
         the IMU prediction, within 1 degree), the IMU is contradicted: its pose becomes
         X(k)'s guess and the affine guess of A(k) is returned; else None."""
         t0 = time.perf_counter()
-        free = free_alignment(self.cfg, self.kfs, self.est.values, prev, kd, T_w_cp, self.rig.T_b_c, ab_p) \
+        free = free_alignment(self.cfg, self.kfs, self.est.values, prev, kd, T_w_cp, self.rig.T_b_c, ab_p, ref) \
             if self.est.cfg.bridge.imu_check else None
         if free is None:
             return None
@@ -305,6 +306,26 @@ class PhotometricSource:
         v.update(X(k), T_tr)
         self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, ang, (time.perf_counter() - t0) * 1e3))
         return np.array([res.a, res.b])
+
+    def _reference(self, prev: KeyframeData, ab: np.ndarray, T_w_cp: gtsam.Pose3):
+        """TrackFrame's reference of ``prev`` (camera ``T_w_cp``, affine ``ab``): its own
+        points and the window's (``vio.direct.coarse_ref``, ``TrackConfig.window_cell_px``)."""
+        cell = self.cfg.track.window_cell_px
+        if cell <= 0:
+            return prev.reference(ab, self.cfg)
+        vals, T_b_c = self.est.values, self.rig.T_b_c
+        hosts = [(vals.atPose3(X(h)).compose(T_b_c), uv, rho) for h, uv, rho, _ in self.live_points()[::-1]
+                 if h != prev.k]
+        ref = window_reference(prev.pyramid(self.cfg.track.levels), prev.K, T_w_cp,
+                               (prev.uv, prev.idepth, prev.idepth_var), hosts, ab, cell, self.cfg.track)
+        prev.release_pyramid()
+        return ref
+
+    def _release(self, kd: KeyframeData) -> None:
+        """Drop keyframe ``kd``'s coarse pyramid levels after its TrackFrame; with the
+        window's points it is the next reference image (``_reference`` drops them then)."""
+        if self.cfg.track.window_cell_px <= 0:
+            kd.release_pyramid()      # its own reference (built by the keyframe worker) is kept
 
     def _contradicts(self, k: int, dist: float, ang: float, dt_ns: int, held: bool) -> bool:
         """:func:`vio.backend.bridge.contradicts` for keyframe k's converged TrackFrame,
