@@ -22,6 +22,7 @@ import gtsam
 import numpy as np
 
 from factors.photometric import Pinhole
+from vio.backend.graph import X
 from vio.direct.trackframe import TrackingReference, make_reference
 
 # the pattern's reach at the coarsest level stays inside the image (factors.photometric)
@@ -77,3 +78,17 @@ def window_reference(image, K: Pinhole, T_w_c: gtsam.Pose3, own: tuple[np.ndarra
     uv, rho, var = np.concatenate(uvs), np.concatenate(rhos), np.concatenate(vars_)
     keep = one_per_cell(uv, cell_px)
     return make_reference(image, uv[keep], rho[keep], K, var[keep], tuple(ab), cfg)
+
+
+def keyframe_reference(prev, ab: np.ndarray, T_w_cp: gtsam.Pose3, live: list, values: gtsam.Values,
+                       T_b_c: gtsam.Pose3, cfg) -> TrackingReference:
+    """:func:`window_reference` of keyframe ``prev`` (``vio.direct.keyframe.KeyframeData``,
+    camera ``T_w_cp``) with the ``live`` points of the window's hosts (``(k, pixels,
+    inverse depths, indices)``, oldest host first: ``PhotometricSource.live_points``),
+    their cameras from ``values``' X(k) and ``T_b_c``; ``cfg`` the ``TrackConfig``. The
+    keyframe's coarse pyramid levels are dropped again afterwards."""
+    hosts = [(values.atPose3(X(h)).compose(T_b_c), uv, rho) for h, uv, rho, _ in live[::-1] if h != prev.k]
+    ref = window_reference(prev.pyramid(cfg.levels), prev.K, T_w_cp, (prev.uv, prev.idepth, prev.idepth_var),
+                           hosts, ab, cfg.window_cell_px, cfg)
+    prev.release_pyramid()
+    return ref

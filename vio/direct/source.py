@@ -14,9 +14,10 @@ Per keyframe k (``prepare_update``):
 1. hosts whose keyframe leaves the window are forgotten (the smoother marginalizes
    their factor with X(host));
 2. TrackFrame (seed Algorithm 3) aligns keyframe k to the previous keyframe (its points
-   and the window's, ``vio.direct.coarse_ref``) from the IMU prediction; its pose becomes the initial guess of X(k) when it converged and
-   agrees with the prediction (``PointsConfig.track_gate_*``, off by default), its
-   affine the guess of A(k); its result is kept in ``tracks`` (failure signal);
+   and the window's, ``vio.direct.coarse_ref``) from the IMU prediction; its pose becomes
+   the initial guess of X(k) when it converged and agrees with the prediction
+   (``PointsConfig.track_gate_*``, off by default), its affine the guess of A(k); its
+   result is kept in ``tracks`` (failure signal);
 3. every host with fewer than ``max_targets`` targets whose live points are at least
    ``min_visible`` inside keyframe k (at the initial guess) gains target k: its factor
    is rebuilt (remove + add); the others stop gaining targets;
@@ -53,7 +54,7 @@ from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
 from vio.direct.imu_check import free_alignment, pose_offset, window_guess
-from vio.direct.coarse_ref import window_reference
+from vio.direct.coarse_ref import keyframe_reference
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
@@ -310,16 +311,10 @@ class PhotometricSource:
     def _reference(self, prev: KeyframeData, ab: np.ndarray, T_w_cp: gtsam.Pose3):
         """TrackFrame's reference of ``prev`` (camera ``T_w_cp``, affine ``ab``): its own
         points and the window's (``vio.direct.coarse_ref``, ``TrackConfig.window_cell_px``)."""
-        cell = self.cfg.track.window_cell_px
-        if cell <= 0:
+        if self.cfg.track.window_cell_px <= 0:
             return prev.reference(ab, self.cfg)
-        vals, T_b_c = self.est.values, self.rig.T_b_c
-        hosts = [(vals.atPose3(X(h)).compose(T_b_c), uv, rho) for h, uv, rho, _ in self.live_points()[::-1]
-                 if h != prev.k]
-        ref = window_reference(prev.pyramid(self.cfg.track.levels), prev.K, T_w_cp,
-                               (prev.uv, prev.idepth, prev.idepth_var), hosts, ab, cell, self.cfg.track)
-        prev.release_pyramid()
-        return ref
+        return keyframe_reference(prev, ab, T_w_cp, self.live_points(), self.est.values, self.rig.T_b_c,
+                                  self.cfg.track)
 
     def _release(self, kd: KeyframeData) -> None:
         """Drop keyframe ``kd``'s coarse pyramid levels after its TrackFrame; with the
