@@ -20,7 +20,7 @@ def test_an_overshooting_update_is_iterated_instead_of_emptying_the_window(tmp_p
     mid-flight initialization moves every world point ~2 m towards the camera (IMU factor
     chi2 ~800). Without re-iteration the outlier check then rejects every landmark at
     once; with it one more iteration brings the IMU factor back (chi2 < 10) and the
-    check rejects at most a few."""
+    check rejects a few."""
     out = tmp_path / "v203"
     generate_tracks(shared("euroc_imu_gt", "V2_03_difficult"), out,
                     TrackGenConfig(start_s=65.0, duration_s=30.0, seed=13))
@@ -44,5 +44,8 @@ def test_an_overshooting_update_is_iterated_instead_of_emptying_the_window(tmp_p
         res = run_dataset(data, cfg, mode="features", max_frames=45)
         assert len(res.outputs) == 45
         worst[chi2] = max(removed)
+    print("worst removed", worst)
     assert worst[0.0] > 40, "without re-iteration the update's overshoot empties the window"
-    assert worst[100.0] <= 5, f"re-iterated, the check rejected {worst[100.0]} landmarks at once"
+    # measured 61 without, 6 with (3 before the pair rotations of 3b76b93 moved this
+    # window's td remainder from 7.1 to 6.6 ms; the run's ATE 0.0133 -> 0.0122 m)
+    assert worst[100.0] <= 8, f"re-iterated, the check rejected {worst[100.0]} landmarks at once"
