@@ -25,7 +25,8 @@ from factors.photometric import Pinhole
 from vio.backend.graph import X
 from vio.direct.trackframe import TrackingReference, make_reference
 
-# the pattern's reach at the coarsest level stays inside the image (factors.photometric)
+# a moved point's full-resolution pattern (+-2 px, factors.photometric) stays inside the
+# image; pattern pixels off a coarser level are masked by make_host_patch
 _MARGIN_PX = 4.0
 
 
