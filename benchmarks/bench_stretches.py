@@ -3,6 +3,7 @@ other frames, in several modes.
 
     python benchmarks/bench_stretches.py [DATA] [--starts 10,20,...] [--modes stereo,direct,hybrid]
                                          [--every 10] [--last 220] [--config overrides.yaml]
+                                         [--frame-step N]
 
 For each start frame S a temporary copy of ``DATA`` (default the real MH_01 stereo set)
 is made whose camera lists begin at S (images, IMU and ground truth are symlinks, only
@@ -40,8 +41,10 @@ from vio.run import load_config, run_dataset  # noqa: E402
 DATA = ROOT.parent / "shared" / "data" / "euroc_MH_01_stereo_synimu"
 
 
-def stretch(src: Path, start: int, out: Path) -> Path:
-    """A copy of the EuRoC folder ``src`` whose camera lists begin at frame ``start``."""
+def stretch(src: Path, start: int, out: Path, step: int = 1) -> Path:
+    """A copy of the EuRoC folder ``src`` whose camera lists begin at frame ``start`` and
+    keep every ``step``-th frame from there (a lower frame rate on the same images, IMU
+    and ground truth)."""
     if out.exists():
         shutil.rmtree(out)
     mav = out / "mav0"
@@ -58,9 +61,10 @@ def stretch(src: Path, start: int, out: Path) -> Path:
         lines = (entry / "data.csv").read_text().splitlines()
         header = [ln for ln in lines if ln.startswith("#")]
         rows = [ln for ln in lines if ln.strip() and not ln.startswith("#")]
-        if start >= len(rows) - 20:
-            raise SystemExit(f"{entry / 'data.csv'}: {len(rows)} frames, no stretch from frame {start}")
-        (cam / "data.csv").write_text("\n".join(header + rows[start:]) + "\n")
+        if len(rows[start::step]) <= 20:
+            raise SystemExit(f"{entry / 'data.csv'}: {len(rows)} frames, no stretch from frame {start}"
+                             f" every {step}")
+        (cam / "data.csv").write_text("\n".join(header + rows[start::step]) + "\n")
     return out
 
 
@@ -87,6 +91,8 @@ def main() -> None:
     ap.add_argument("--last", type=int, default=220)
     ap.add_argument("--modes", default="stereo,direct,hybrid")
     ap.add_argument("--config", type=Path, default=None, help="YAML overrides, as vio run --config")
+    ap.add_argument("--frame-step", type=int, default=1,
+                    help="keep every Nth camera frame from each start (10 Hz from EuRoC's 20 Hz: 2)")
     a = ap.parse_args()
     logging.disable(logging.WARNING)
     starts = ([int(s) for s in a.starts.split(",")] if a.starts
@@ -97,7 +103,7 @@ def main() -> None:
           f"{'p95 ms':>7s} {'max ms':>7s} {'Sim3 mm':>8s} {'scale %':>8s}")
     with tempfile.TemporaryDirectory(prefix="vio_stretch_") as tmp:
         for s in starts:
-            folder = stretch(a.data, s, Path(tmp) / f"from_{s}")
+            folder = stretch(a.data, s, Path(tmp) / f"from_{s}", a.frame_step)
             for m in modes:
                 r = table.setdefault(s, {})[m] = run(folder, m, a.config)
                 print(f"{s:5d} {m:7s} {r['ate_mm']:7.2f} {r['poses']:4d}/{r['frames']:4d} {r['init']:28s} "

@@ -369,8 +369,9 @@ def test_moved_stamps_copy_carries_the_offset_and_its_rows_are_summarised(tmp_pa
 
 
 def test_stretch_copy_starts_the_cameras_at_the_frame(tmp_path):
-    """bench_stretches: the copy's camera lists begin at the start frame, everything else
-    (images, IMU, ground truth) is the original's; a start too close to the end refuses."""
+    """bench_stretches: the copy's camera lists begin at the start frame (every ``step``-th
+    from there), everything else (images, IMU, ground truth) is the original's; a start too
+    close to the end refuses."""
     from bench_stretches import stretch
     from vio.io.euroc import load_euroc
     src = shared("euroc_V1_01_static_stereo")
@@ -382,6 +383,9 @@ def test_stretch_copy_starts_the_cameras_at_the_frame(tmp_path):
     assert Path(part.cam0.files[0]).exists()
     with pytest.raises(SystemExit, match="no stretch from frame"):
         stretch(src, len(full.cam0.t_ns) - 5, tmp_path / "late")
+    every3 = load_euroc(stretch(src, 1, tmp_path / "s1x3", step=3))      # 6.7 Hz from frame 1
+    assert np.array_equal(every3.cam0.t_ns, full.cam0.t_ns[1::3])
+    assert np.array_equal(every3.cam1.t_ns, full.cam1.t_ns[1::3])
 
 
 def test_imu_gt_consistency_is_one_on_consistent_motion_and_sees_a_scaled_imu():
