@@ -199,17 +199,23 @@ def _mh05_window(first: int, n: int = 31, stride: int = 1):
     return data, pk[0], cfg, res
 
 
+def _mh05_window_errors(first: int, **window) -> tuple[float, float, float]:
+    """:func:`_mh05_window` (``window``: its ``n`` and ``stride``), accepted, and its first
+    state's errors against the ground truth at the first packet (:func:`_b0_errors`)."""
+    data, pk0, _, res = _mh05_window(first, **window)
+    assert res.ok, res.reason
+    gt = data.groundtruth
+    i = np.searchsorted(gt.t_ns, pk0.t_ns)
+    R_true = gtsam.Rot3.Quaternion(*gt.q_wxyz[i]).matrix()
+    return _b0_errors(res.state, R_true, gt.v_w[i], gt.bg[i])
+
+
 def test_real_mh05_first_window_from_hover():
     """Real MH_05 images from the first frame, where the MAV hovers (0.005 m/s) before
     climbing (0.35 m/s after 1 s). Started at zero gyro bias (true [-0.002, 0.021, 0.077]
     rad/s) the alignment settled in a local minimum with v0 = 0.40 m/s and the batch
     accepted it; the visual-rotation bias (``gyro_init``) starts it in the right basin."""
-    data, pk0, _, res = _mh05_window(0)
-    assert res.ok, res.reason
-    gt = data.groundtruth
-    i = np.searchsorted(gt.t_ns, pk0.t_ns)
-    R_true = gtsam.Rot3.Quaternion(*gt.q_wxyz[i]).matrix()
-    dv, dg, dbg = _b0_errors(res.state, R_true, gt.v_w[i], gt.bg[i])
+    dv, dg, dbg = _mh05_window_errors(0)
     print(f"MH_05 first window: |dv| {dv:.4f} m/s, gravity {dg:.2f} deg, |dbg| {dbg:.4f} rad/s")
     assert dv < 0.05 and dbg < 0.005 and dg < 2.0   # measured 0.010, 0.89, 0.0017 (was |dv| 0.40)
 
@@ -221,12 +227,7 @@ def test_real_mh05_window_at_a_third_of_the_frame_rate(first):
     13 of 15 of them, the alignment started at zero gyro bias and took v0 = 0.35-0.41 m/s
     down for a true 0.003 (gyro bias y off by 0.027 rad/s; the runs ended at 0.158 / 0.208
     m ATE). The essential matrix's candidate next to the rotation-only fit keeps them."""
-    data, pk0, _, res = _mh05_window(first, n=11, stride=3)
-    assert res.ok, res.reason
-    gt = data.groundtruth
-    i = np.searchsorted(gt.t_ns, pk0.t_ns)
-    R_true = gtsam.Rot3.Quaternion(*gt.q_wxyz[i]).matrix()
-    dv, dg, dbg = _b0_errors(res.state, R_true, gt.v_w[i], gt.bg[i])
+    dv, dg, dbg = _mh05_window_errors(first, n=11, stride=3)
     print(f"MH_05 from {first} at 6.7 Hz: |dv| {dv:.4f} m/s, gravity {dg:.2f} deg, |dbg| {dbg:.4f} rad/s")
     assert dv < 0.15 and dbg < 0.015 and dg < 2.0   # measured 0.097 / 0.046, 0.0087 / 0.0036
 
