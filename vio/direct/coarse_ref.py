@@ -26,25 +26,33 @@ from vio.backend.graph import X
 from vio.direct.trackframe import TrackingReference, make_reference
 
 # a moved point's full-resolution pattern (+-2 px, factors.photometric) stays inside the
-# image; pattern pixels off a coarser level are masked by make_host_patch
+# image (pattern pixels off a coarser level are masked by make_host_patch)
 _MARGIN_PX = 4.0
+
+
+def host_in_camera(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points at host pixels ``uv_h`` (N, 2, undistorted, intrinsics ``K`` in both
+    cameras) with inverse depths ``rho_h`` (N,, 1/m) in host camera h, seen from camera c
+    (``T_c_h`` the host camera in c): pixels (N, 2), inverse depths (N,, 1/m) and a mask
+    (N,) of those more than 1 mm in front of c (the others' pixels and depths are
+    placeholders)."""
+    q = K.unproject(uv_h) @ T_c_h.rotation().matrix().T + rho_h[:, None] * T_c_h.translation()   # rho_h p_c
+    front = q[:, 2] > 1e-3 * np.maximum(rho_h, 1e-6)
+    q = np.where(front[:, None], q, 1.0)
+    return K.project(q), rho_h / q[:, 2], front
 
 
 def moved_points(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.ndarray,
                  shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (M, 2) and inverse depths (M,) in camera c of the points at host pixels
-    ``uv_h`` (N, 2, undistorted, intrinsics ``K`` in both cameras) with inverse depths
-    ``rho_h`` (N,, 1/m) in host camera h; ``T_c_h`` the host camera in c. Points behind
-    c or outside the ``shape`` (H, W) image (less a margin) are left out."""
-    R, t = T_c_h.rotation().matrix(), T_c_h.translation()
-    x, y = (uv_h[:, 0] - K.cx) / K.fx, (uv_h[:, 1] - K.cy) / K.fy
-    q = [R[i, 0] * x + R[i, 1] * y + R[i, 2] + rho_h * t[i] for i in range(3)]   # rho_h p_c
-    ok = (rho_h > 0) & (q[2] > 1e-9 * np.maximum(rho_h, 1.0))
-    zs = np.where(ok, q[2], 1.0)
-    u, v = K.fx * q[0] / zs + K.cx, K.fy * q[1] / zs + K.cy
+    """Pixels (M, 2) and inverse depths (M,) in camera c of the points of
+    :func:`host_in_camera` in front of c and inside its ``shape`` (H, W) image less a
+    margin."""
+    uv, rho, ok = host_in_camera(K, T_c_h, uv_h, rho_h)
     h, w = shape
-    ok &= (u >= _MARGIN_PX) & (u <= w - 1 - _MARGIN_PX) & (v >= _MARGIN_PX) & (v <= h - 1 - _MARGIN_PX)
-    return np.stack([u[ok], v[ok]], axis=1), (rho_h / zs)[ok]
+    ok &= (rho_h > 0) & (uv[:, 0] >= _MARGIN_PX) & (uv[:, 0] <= w - 1 - _MARGIN_PX)
+    ok &= (uv[:, 1] >= _MARGIN_PX) & (uv[:, 1] <= h - 1 - _MARGIN_PX)
+    return uv[ok], rho[ok]
 
 
 def one_per_cell(uv: np.ndarray, cell_px: float) -> np.ndarray:

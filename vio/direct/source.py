@@ -54,7 +54,7 @@ from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
 from vio.direct.imu_check import free_alignment, pose_offset, window_guess
-from vio.direct.coarse_ref import keyframe_reference
+from vio.direct.coarse_ref import host_in_camera, keyframe_reference
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
 from vio.direct.temporal import host_candidates
@@ -337,19 +337,13 @@ class PhotometricSource:
         """Whether keyframe k's TrackFrame contradicted the IMU prediction (:meth:`_retry`)."""
         return self.contradicted_k == k
 
-    def _project(self, host: Host, T_w_bj: gtsam.Pose3) -> tuple[np.ndarray, np.ndarray]:
-        """Host centre pixels of the live points projected into a frame at ``T_w_bj``:
-        (N, 2) pixels (undistorted cam0) and an (N,) mask in front of the camera."""
-        T = T_w_bj.compose(self.rig.T_b_c).between(self.est.values.atPose3(X(host.k)).compose(self.rig.T_b_c))
-        q = self.rig.K0.unproject(host.uv) @ T.rotation().matrix().T + host.pts.rho[:, None] * T.translation()
-        front = q[:, 2] > 1e-3 * np.maximum(host.pts.rho, 1e-6)
-        return self.rig.K0.project(np.where(front[:, None], q, 1.0)), front & host.pts.alive
-
     def _visible_fraction(self, host: Host, T_w_bj: gtsam.Pose3) -> float:
-        uv, ok = self._project(host, T_w_bj)
+        """Share of ``host``'s points alive, in front of and inside a frame at ``T_w_bj``."""
+        T = T_w_bj.compose(self.rig.T_b_c).between(self.est.values.atPose3(X(host.k)).compose(self.rig.T_b_c))
+        uv, _, front = host_in_camera(self.rig.K0, T, host.uv, host.pts.rho)
         w, h = self.rig.cam0.resolution
         b = 4.0
-        ok &= (uv[:, 0] >= b) & (uv[:, 0] < w - b) & (uv[:, 1] >= b) & (uv[:, 1] < h - b)
+        ok = front & host.pts.alive & (uv[:, 0] >= b) & (uv[:, 0] < w - b) & (uv[:, 1] >= b) & (uv[:, 1] < h - b)
         return float(ok.sum()) / max(len(host.uv), 1)
 
     def _add_factor(self, host: Host, g: gtsam.NonlinearFactorGraph) -> None:
