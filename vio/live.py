@@ -66,6 +66,7 @@ class KeyState:
     recoveries: int
     landmark_ids: np.ndarray | None = None
     landmarks_w: np.ndarray | None = None
+    weak_ids: np.ndarray | None = None
 
 
 class BackendStage:
@@ -85,7 +86,7 @@ class BackendStage:
             est = self.pipe.est
             self.state = KeyState(o.t_ns, o.T_w_b.matrix(), np.asarray(o.v_w, float), o.bias.vector(),
                                   o.td_s, o.T_b_c.matrix(), o.n_landmarks, self.pipe.n_keyframes,
-                                  est.recoveries, o.landmark_ids, o.landmarks_w)
+                                  est.recoveries, o.landmark_ids, o.landmarks_w, est.weak_ids())
         return self.state
 
 
@@ -220,13 +221,17 @@ class _StateView:
         s = pipe.state
         self.cfg, self.cam, self.check_fired_t = pipe.cfg.backend, pipe.cam, None
         self.frame_contradictions = 0
-        self._T_b_c, self._points = gtsam.Pose3(s.T_b_c), (s.landmark_ids, s.landmarks_w)
+        self._T_b_c, self._points, self._state = gtsam.Pose3(s.T_b_c), (s.landmark_ids, s.landmarks_w), s
 
     def extrinsic(self) -> gtsam.Pose3:
         return self._T_b_c
 
     def frame_points(self) -> tuple[np.ndarray, np.ndarray]:
         return self._points
+
+    def weak_ids(self) -> np.ndarray:
+        w = self._state.weak_ids
+        return np.zeros(0, np.int64) if w is None else w
 
 
 def checked(pipe: "LivePipeline", nav: gtsam.NavState, pkt: FramePacket) -> gtsam.NavState:

@@ -303,6 +303,10 @@ def _pnp_contradicts(est, features: FeatureFrame | None, pred: gtsam.NavState, s
         return None
     T_pred = pred.pose() if shift is None else pred.pose().compose(shift)
     ids, pts = landmarks()
+    weak = est.weak_ids()
+    if len(weak):           # entered without parallax: a guessed depth cannot contradict the IMU
+        keep = ~np.isin(ids, weak)
+        ids, pts = ids[keep], pts[keep]
     if len(ids) < bc.imu_check_min_inliers:
         return None
     order = np.argsort(ids)

@@ -382,6 +382,11 @@ class Estimator:
         """Ids (N,) and world points (N, 3) of the landmarks in the window."""
         return self.lm.points_w(self.values)
 
+    def weak_ids(self) -> np.ndarray:
+        """Ids of the window's landmarks that entered without parallax (their depths are
+        guesses; ``LandmarkManager.weak_ids``): the IMU check leaves them out."""
+        return self.lm.weak_ids()
+
     def frame_points(self) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`landmarks_w` once per estimate (kept until ``values`` is replaced; the
         factors' refined depths may move by a fraction of a mm meanwhile): what the frames

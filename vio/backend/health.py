@@ -107,7 +107,11 @@ class BridgeConfig:
     time, the rolling shutter's readout): issue 20's tracks at an unknown td of -20 / +25
     ms fired 3 / 7 times without it and lost 15-25 % of ATE. A disagreement in attitude
     beyond ``imu_check_max_deg`` is a timing error, not an accelerometer's (10 ms at 3
-    rad/s are 1.7 degrees).
+    rad/s are 1.7 degrees). Landmarks that entered without parallax (``Track.weak``: they
+    waited out ``VisionConfig.max_wait_keyframes`` and their depths are guesses) take no
+    part: after a hover, 15 such world points at 0.15-0.5 m (the walls 4-12 m away) held
+    PnP at the hover pose 5 cm from a right prediction (issue 20's random-pick MH_03
+    excerpt at td 25 ms: 0.064 -> 0.036 m).
     Where a factor source's own alignment contradicted the IMU (direct mode's TrackFrame,
     ``FactorSource.imu_contradicted``), the intervals ending within ``imu_check_hold_s`` of
     that interval's end are bridged too: over a short interval a wrong reading moves the

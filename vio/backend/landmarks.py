@@ -54,7 +54,8 @@ class Track:
     eliminated-depth factor, reused while it is no longer observed. ``shift_rows``: (frames,
     (n, 5) rows ``uv``, td ``vel``, ``offset``) of ``td_shift``'s frames in order, both set by
     :meth:`set_shifts`: the outlier check's observations in one array
-    (``graph.worst_reprojection_errors``)."""
+    (``graph.worst_reprojection_errors``). ``weak``: it entered after waiting out
+    ``VisionConfig.max_wait_keyframes`` without parallax, so its depth is a guess."""
 
     lid: int
     obs: dict[int, Obs] = field(default_factory=dict)
@@ -68,6 +69,7 @@ class Track:
     lam_prior: tuple[float, float] | None = None
     entry: tuple | None = None
     shift_rows: tuple[tuple[int, ...], np.ndarray] | None = None
+    weak: bool = False
 
     def frames(self) -> list[int]:
         return sorted(self.obs)

@@ -54,7 +54,8 @@ class PointTrack:
     (frames, ``Obs.packed`` rows, row offsets) of its last factor built, for the outlier
     check (``track_arrays.gather``'s arrays without the gather); ``retired``: the outlier
     check took one of its observations out, and it takes no new ones (the id is free again
-    once the point has left the window)."""
+    once the point has left the window); ``weak``: converted from a track that entered
+    without parallax (``Track.weak``)."""
 
     lid: int
     key: int
@@ -63,6 +64,7 @@ class PointTrack:
     index: int | None = None
     rows: tuple[tuple[int, ...], np.ndarray, np.ndarray] | None = None
     retired: bool = False
+    weak: bool = False
 
 
 class PointTracks:
@@ -133,7 +135,7 @@ class PointTracks:
         return True
 
     def convert(self, lid: int, p_w: np.ndarray, obs: dict[int, Obs], t: float,
-                g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> None:
+                g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict, weak: bool = False) -> None:
         """A newly inserted track becomes a world point at ``p_w`` (m, world), with a weak
         prior there (``point_prior_sigma_m``): a low-parallax track leaves the depth
         direction nearly unobservable, which an inverse depth tolerates and a point does
@@ -141,7 +143,7 @@ class PointTracks:
         (measured without it: IndeterminateLinearSystem at a point, 3 solver recoveries
         in the 18 generated benchmark runs)."""
         self._next_key += 1
-        pt = PointTrack(lid, graph.P(self._next_key), dict(obs))
+        pt = PointTrack(lid, graph.P(self._next_key), dict(obs), weak=weak)
         v.insert(pt.key, np.asarray(p_w, float))
         sigma = self.est.cfg.vision.point_prior_sigma_m
         g.add(gtsam.PriorFactorVector(pt.key, np.asarray(p_w, float), gtsam.noiseModel.Isotropic.Sigma(3, sigma)))

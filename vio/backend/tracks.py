@@ -198,7 +198,7 @@ class LandmarkManager(TrackFactorBuilder):
         T_w_c = self._pose(tr.anchor, k, pred).compose(self.est.values.atPose3(graph.EXTRINSIC))
         p_w = tr.anchor_point(T_w_c, float(v.atVector(tr.key)[0]), graph.td_value(self.est.values))
         v.erase(tr.key)
-        self.points.convert(tr.lid, p_w, tr.obs, t, g, v, stamps)
+        self.points.convert(tr.lid, p_w, tr.obs, t, g, v, stamps, tr.weak)
 
     def _retire_key(self, tr: Track, g: gtsam.NonlinearFactorGraph, stamps: dict,
                     removals: list[int]) -> None:
@@ -242,7 +242,7 @@ class LandmarkManager(TrackFactorBuilder):
                     continue
                 z = stereo_depth(o.uv, o.right_uv, self.est.T_c0_c1)
                 if np.isfinite(z) and vc.min_depth_m <= z <= min(vc.max_depth_m, vc.max_stereo_depth_m):
-                    tr.key, tr.anchor = self._new_key(), f
+                    tr.key, tr.anchor, tr.weak = self._new_key(), f, False
                     for g in [g for g in frames if g < f]:
                         del tr.obs[g]          # the anchor is the first kept observation
                     self._set_depth(tr, 1.0 / z, v)
@@ -262,6 +262,7 @@ class LandmarkManager(TrackFactorBuilder):
                 depth = vc.default_depth_m
         tr.key = self._new_key()
         tr.anchor = frames[0]
+        tr.weak = not (ok and angle >= vc.min_parallax_deg)   # waited out: the depth is a guess
         self._set_depth(tr, 1.0 / depth, v)
 
     def _set_depth(self, tr: Track, lam: float, v: gtsam.Values) -> None:
@@ -324,6 +325,12 @@ class LandmarkManager(TrackFactorBuilder):
         if self.strikes[lid] >= self.est.cfg.vision.max_rejections:
             self.rejected.add(lid)
             del self.strikes[lid]
+
+    def weak_ids(self) -> np.ndarray:
+        """Ids of the landmarks that entered without parallax (``Track.weak``,
+        ``PointTrack.weak``): their depths are guesses."""
+        return np.array([lid for lid, tr in self.tracks.items() if tr.weak]
+                        + [lid for lid, pt in self.points.tracks.items() if pt.weak], dtype=np.int64)
 
     def points_w(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
         """Ids (N,) and world points (N, 3) of the tracks in the graph."""
