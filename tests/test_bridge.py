@@ -126,9 +126,9 @@ def _contradiction_case(pred_offset: gtsam.Pose3, n_jumped: int = 0):
     fr = FeatureFrame(0, fr.ids, uv, fr.velocity, fr.row)
     lms = (np.arange(20), p_w)
     est = SimpleNamespace(cfg=BackendConfig(), cam=SimpleNamespace(intrinsics=np.array([460.0, 460.0, 376.0, 240.0])),
-                          landmarks_w=lambda: lms, frame_points=lambda: lms, extrinsic=lambda: T_b_c, k=4,
+                          check_points=lambda: lms, frame_points=lambda: lms, extrinsic=lambda: T_b_c, k=4,
                           contradicted_k=None, contradicted_t=None, check_fired_t=None, imu_contradictions=0,
-                          frame_contradictions=0, weak_ids=lambda: np.zeros(0, np.int64))
+                          frame_contradictions=0)
     pred = gtsam.NavState(T_w_b.compose(pred_offset), np.array([0.7, 0.0, 0.0]))
     return est, fr, pred, T_w_b
 
@@ -165,8 +165,11 @@ def test_landmarks_that_entered_without_parallax_do_not_contradict_the_imu():
     pose, 5 cm from a right prediction: the interval's IMU was bridged and the run went
     0.036 -> 0.064 m. Here 32 of 40 landmarks sit at a twentieth of their depth on their
     rays from a pose 4 cm back: counted, they contradict a right prediction; as
-    ``weak_ids`` (``Track.weak``) they are left out and the 8 others agree with it."""
+    ``weak_ids`` (``Track.weak``) ``Estimator.check_points`` leaves them out and the 8
+    others agree with it."""
+    from types import SimpleNamespace
     from vio.backend.bridge import imu_contradicted
+    from vio.backend.estimator import Estimator
     est, fr, pred, T_w_b = _contradiction_case(gtsam.Pose3())
     rng = np.random.default_rng(3)
     T_b_c, _, p_w, _ = _scene(rng, 40, 0.0)
@@ -174,12 +177,13 @@ def test_landmarks_that_entered_without_parallax_do_not_contradict_the_imu():
     fr = _frame(T_w_b.compose(T_b_c), p_w, 0.3 / 460, rng)
     near = np.array([hover.transformFrom(hover.transformTo(p) / 20.0) for p in p_w[8:]])
     lms = (np.arange(40), np.vstack([p_w[:8], near]))
-    est.landmarks_w = est.frame_points = lambda: lms
+    est.check_points = est.frame_points = lambda: lms
     est.extrinsic = lambda: T_b_c
     T = imu_contradicted(est, fr, pred)
     assert T is not None and np.linalg.norm(T.translation() - T_w_b.translation()) > 0.03
     est.imu_contradictions, est.check_fired_t = 0, None
-    est.weak_ids = lambda: np.arange(8, 40)
+    est.landmarks_w, est.lm = (lambda: lms), SimpleNamespace(weak_ids=lambda: np.arange(8, 40))
+    est.check_points = lambda: Estimator.check_points(est)
     assert imu_contradicted(est, fr, pred) is None and est.imu_contradictions == 0
 
 
@@ -230,7 +234,7 @@ def test_the_live_frame_path_checks_its_prediction_on_the_reported_landmarks():
     from vio.live import KeyState, checked
     from vio.pipeline import PipelineConfig
     est, fr, pred, T_w_b = _contradiction_case(gtsam.Pose3(gtsam.Rot3(), np.array([0.12, 0.0, 0.03])))
-    ids, pts = est.landmarks_w()
+    ids, pts = est.check_points()
     state = KeyState(0, T_w_b.matrix(), np.zeros(3), np.zeros(6), 0.0, est.extrinsic().matrix(), len(ids), 3, 0,
                      ids, pts)
     pipe = SimpleNamespace(state=state, cfg=PipelineConfig(), frame_contradictions=0,

@@ -52,8 +52,8 @@ _PIPE_BYTES = 1 << 20   # Linux F_SETPIPE_SZ: ~1 MB of packets may queue before 
 class KeyState:
     """The newest keyframe estimate after one worker step (picklable, small): time (ns),
     ``T_w_b`` (4, 4), ``v_w`` (3,) m/s, bias [accel, gyro] (6,), td (s), ``T_b_c`` (4, 4),
-    landmarks in the window, keyframes and solver recoveries so far; the window
-    landmarks' ids (N,) and world points (N, 3) (the frames' check, :func:`checked`)."""
+    landmarks in the window, keyframes and solver recoveries so far; the ids (N,) and world
+    points (N, 3) the frames' check stands on (:func:`checked`, ``Estimator.frame_points``)."""
 
     t_ns: int
     T_w_b: np.ndarray
@@ -66,7 +66,6 @@ class KeyState:
     recoveries: int
     landmark_ids: np.ndarray | None = None
     landmarks_w: np.ndarray | None = None
-    weak_ids: np.ndarray | None = None
 
 
 class BackendStage:
@@ -86,7 +85,7 @@ class BackendStage:
             est = self.pipe.est
             self.state = KeyState(o.t_ns, o.T_w_b.matrix(), np.asarray(o.v_w, float), o.bias.vector(),
                                   o.td_s, o.T_b_c.matrix(), o.n_landmarks, self.pipe.n_keyframes,
-                                  est.recoveries, o.landmark_ids, o.landmarks_w, est.weak_ids())
+                                  est.recoveries, *est.frame_points())
         return self.state
 
 
@@ -221,17 +220,13 @@ class _StateView:
         s = pipe.state
         self.cfg, self.cam, self.check_fired_t = pipe.cfg.backend, pipe.cam, None
         self.frame_contradictions = 0
-        self._T_b_c, self._points, self._state = gtsam.Pose3(s.T_b_c), (s.landmark_ids, s.landmarks_w), s
+        self._T_b_c, self._points = gtsam.Pose3(s.T_b_c), (s.landmark_ids, s.landmarks_w)
 
     def extrinsic(self) -> gtsam.Pose3:
         return self._T_b_c
 
     def frame_points(self) -> tuple[np.ndarray, np.ndarray]:
         return self._points
-
-    def weak_ids(self) -> np.ndarray:
-        w = self._state.weak_ids
-        return np.zeros(0, np.int64) if w is None else w
 
 
 def checked(pipe: "LivePipeline", nav: gtsam.NavState, pkt: FramePacket) -> gtsam.NavState:

@@ -221,8 +221,9 @@ def imu_held(est, t_ns: int) -> bool:
 
 def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
                      shift: gtsam.Pose3 | None = None) -> gtsam.Pose3 | None:
-    """The new keyframe's ``T_w_b`` by RANSAC PnP on the window's landmarks when vision
-    contradicts the IMU prediction ``pred`` (``BridgeConfig.imu_check``), else None.
+    """The new keyframe's ``T_w_b`` by RANSAC PnP on the window's landmarks
+    (``Estimator.check_points``) when vision contradicts the IMU prediction ``pred``
+    (``BridgeConfig.imu_check``), else None.
 
     The IMU prediction over a keyframe interval is good to a few pixels wherever the
     readings are: on clean real MH_01 stereo, MH_05 mono and V1_01 features it re-projects
@@ -234,7 +235,7 @@ def imu_contradicted(est, features: FeatureFrame | None, pred: gtsam.NavState,
     warning. ``shift``: the body's motion from the keyframe's time to the images' exposure
     (the td estimate not yet in the keyframe's time): PnP poses the camera at the exposure,
     and at 1.5 m/s 25 ms of td are 3.75 cm."""
-    found = _pnp_contradicts(est, features, pred, shift, est.landmarks_w)
+    found = _pnp_contradicts(est, features, pred, shift, est.check_points)
     if found is None:
         return None
     est.check_fired_t = features.t_ns
@@ -303,10 +304,6 @@ def _pnp_contradicts(est, features: FeatureFrame | None, pred: gtsam.NavState, s
         return None
     T_pred = pred.pose() if shift is None else pred.pose().compose(shift)
     ids, pts = landmarks()
-    weak = est.weak_ids()
-    if len(weak):           # entered without parallax: a guessed depth cannot contradict the IMU
-        keep = ~np.isin(ids, weak)
-        ids, pts = ids[keep], pts[keep]
     if len(ids) < bc.imu_check_min_inliers:
         return None
     order = np.argsort(ids)

@@ -382,18 +382,20 @@ class Estimator:
         """Ids (N,) and world points (N, 3) of the landmarks in the window."""
         return self.lm.points_w(self.values)
 
-    def weak_ids(self) -> np.ndarray:
-        """Ids of the window's landmarks that entered without parallax (their depths are
-        guesses; ``LandmarkManager.weak_ids``): the IMU check leaves them out."""
-        return self.lm.weak_ids()
+    def check_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`landmarks_w` less those that entered without parallax (guessed depths,
+        ``LandmarkManager.weak_ids``): what the IMU check's PnP stands on."""
+        ids, pts = self.landmarks_w()
+        keep = ~np.isin(ids, self.lm.weak_ids())
+        return ids[keep], pts[keep]
 
     def frame_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`landmarks_w` once per estimate (kept until ``values`` is replaced; the
+        """:meth:`check_points` once per estimate (kept until ``values`` is replaced; the
         factors' refined depths may move by a fraction of a mm meanwhile): what the frames
         between keyframes check their prediction against (1.1 -> 0.1 ms a frame on real
         MH_01 stereo)."""
         if self._frame_points[0] is not self.values:
-            self._frame_points = (self.values, self.landmarks_w())
+            self._frame_points = (self.values, self.check_points())
         return self._frame_points[1]
 
     def window_poses(self) -> dict[int, tuple[int, gtsam.Pose3]]:
