@@ -75,7 +75,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_configs_"))
     jobs = [(s.name, c) for s in specs for c in configs]
     with ThreadPoolExecutor(args.workers) as ex:
-        out = ex.map(lambda j: run_one(paths[j[0]], j[1], tmp / f"{len(j[0])}_{abs(hash(j))}.tum"), jobs)
+        out = ex.map(lambda i: run_one(paths[jobs[i][0]], jobs[i][1], tmp / f"{i}.tum"), range(len(jobs)))
         results = dict(zip(jobs, out))
     print(f"{'set':<46}" + "".join(f"{Path(c).stem[:24]:>34}" for c in configs))
     for s in specs:
