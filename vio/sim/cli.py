@@ -50,6 +50,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="write IMU, ground truth and calibration only (e.g. for `vio tracks`)")
     p.add_argument("--tumvi", action="store_true",
                    help="TUM-VI layout: equidistant fisheye 512x512, mocap0, dso/ Kalibr files")
+    p.add_argument("--flight", type=Path, metavar="SRC",
+                   help="render along a real flight instead: SRC's real IMU and ground truth "
+                        "(an EuRoC folder with imu0 and state_groundtruth_estimate0, e.g. "
+                        "euroc_imu_gt/MH_05_difficult), the room sized to it (vio.sim.flight)")
+    p.add_argument("--start", type=float, default=0.0,
+                   help="with --flight: seconds after the first ground-truth row (default 0)")
     p.add_argument("--force", action="store_true", help="replace an existing OUT/mav0")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
     p.set_defaults(func=run)
@@ -96,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
     from vio.sim import simulate
 
     t0 = time.perf_counter()
+    if getattr(args, "flight", None) is not None:
+        return _run_flight(args, cfg, t0)
     if getattr(args, "tumvi", False):
         from vio.sim.fisheye import simulate_tumvi
         try:
@@ -114,6 +122,29 @@ def run(args: argparse.Namespace) -> int:
     dt = time.perf_counter() - t0
     print(f"vio sim: wrote {res.mav0} ({'+'.join(res.cameras)}, {res.n_frames} frames, "
           f"{res.n_imu} IMU samples) and {res.truth_path.name} in {dt:.1f} s")
+    return 0
+
+
+def _run_flight(args: argparse.Namespace, cfg: SimConfig, t0: float) -> int:
+    """``vio sim OUT --flight SRC``: images along SRC's real flight (``vio.sim.flight``).
+    ``--seconds`` (None: to the end of the flight), ``--td``, ``--seed``, ``--mono`` /
+    ``--stereo``, ``--scale`` and ``--image-noise`` apply; the motion options do not."""
+    from vio.errors import DataError
+    from vio.sim.flight import render_flight
+    from vio.sim.tracks_config import TrackGenConfig
+
+    seconds = getattr(args, "seconds", None)
+    try:
+        tcfg = TrackGenConfig(start_s=args.start, duration_s=seconds, td_s=cfg.td_s, seed=cfg.seed,
+                              rate_hz=cfg.cam_rate_hz)
+        res = render_flight(args.flight, args.out, tcfg, cfg, progress=getattr(args, "progress", False),
+                            overwrite=getattr(args, "force", False))
+    except (FileExistsError, OSError, ValueError, DataError) as exc:
+        print(f"vio sim: {exc}", file=sys.stderr)
+        return 1
+    print(f"vio sim: wrote {res.mav0} ({'+'.join(res.cameras)}, {res.n_frames} frames along "
+          f"{args.flight}'s flight, {res.n_imu} real IMU samples) and {res.truth_path.name} in "
+          f"{time.perf_counter() - t0:.1f} s")
     return 0
 
 

@@ -126,11 +126,16 @@ def _clear(path: np.ndarray, lo: np.ndarray, hi: np.ndarray, clearance: float) -
 
 def build_scene(cfg: SimConfig, traj: Trajectory) -> Scene:
     """Room of ``cfg.room_size`` with boxes and pillars placed clear of ``traj``."""
+    return scene_around(cfg, _path_xy(traj, cfg.seconds))
+
+
+def scene_around(cfg: SimConfig, path: np.ndarray) -> Scene:
+    """Room of ``cfg.room_size`` with boxes and pillars placed ``cfg.obstacle_clearance_m``
+    (horizontally) clear of the path positions ``path`` (M, 2) m, room frame."""
     rng = np.random.default_rng([cfg.seed, 2])
     L = np.asarray(cfg.room_size, float)
     rects = _box_faces(np.zeros(3), L, inward=True)
     names = ["wall_x0", "wall_x1", "wall_y0", "wall_y1", "floor", "ceiling"]
-    path = _path_xy(traj, cfg.seconds)
     placed: list[tuple[np.ndarray, np.ndarray]] = []
 
     def free(lo: np.ndarray, hi: np.ndarray) -> bool:

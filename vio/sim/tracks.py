@@ -193,7 +193,7 @@ def _add_outliers(cfg: TrackGenConfig, cam: CameraCalib, frame: np.ndarray, uv: 
     return kind
 
 
-def _frame_stamps(cfg: TrackGenConfig, gt_t: np.ndarray, imu_t: np.ndarray, td: int) -> np.ndarray:
+def frame_grid(cfg: TrackGenConfig, gt_t: np.ndarray, imu_t: np.ndarray, td: int) -> np.ndarray:
     """Regular camera grid (int64 ns) anchored on an IMU stamp; stamp + td inside the GT span,
     stamp and stamp + td inside the IMU span with ``imu_margin_s`` to spare."""
     margin = int(round(cfg.imu_margin_s * 1e9))
@@ -216,14 +216,14 @@ def generate_tracks(src: Path, out: Path, cfg: TrackGenConfig) -> TrackGenResult
     imu = read_table(src / "imu0" / "data.csv", 6)
     gt, gt_p, gt_q, gt_tum = read_groundtruth(src)
     td = int(round(cfg.td_s * 1e9))
-    t_ns = _frame_stamps(cfg, gt.t_ns, imu.t_ns, td)
+    t_ns = frame_grid(cfg, gt.t_ns, imu.t_ns, td)
     if len(t_ns) < 2:
         raise DataError(src, f"fewer than 2 camera frames fit the GT/IMU span for start={cfg.start_s}s "
                              f"duration={cfg.duration_s}s td={cfg.td_s}s")
     seeds = np.random.SeedSequence(cfg.seed).spawn(4)
     rng_room, rng_track, rng_noise, rng_out = (np.random.default_rng(s) for s in seeds)
     pts, nrm = make_room(gt_p, cfg, rng_room)
-    fused = _fused_truth(src, cfg, imu, gt, gt_p, gt_q, t_ns, td) if cfg.imu_consistent else None
+    fused = fused_truth(src, cfg, imu, gt, gt_p, gt_q, t_ns, td) if cfg.imu_consistent else None
     # the poses the frames show: the fused trajectory at the exposure times, or the raw rows
     t_render = t_ns + td if fused is not None else _render_times(cfg, gt.t_ns, t_ns + td)
     p_w_b, R_w_b = fused.at(t_render) if fused is not None else interpolate_poses(gt.t_ns, gt_p, gt_q, t_render)
@@ -276,7 +276,7 @@ def _render_times(cfg: TrackGenConfig, gt_t: np.ndarray, t_ns: np.ndarray) -> np
     return gt_t[i]
 
 
-def _fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
+def fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
                  t_ns: np.ndarray, td: int) -> FusedTrajectory:
     """The IMU-consistent trajectory at the frame stamps and exposure times (and half a
     frame period beyond both ends, inside the IMU margin), its ground-truth pose priors

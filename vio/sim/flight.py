@@ -1,0 +1,139 @@
+"""Images rendered along a real flight: the real IMU, a rendered camera.
+
+``render_flight(src, out, tracks_cfg, sim_cfg)`` takes an EuRoC sequence's real IMU and
+ground truth (a folder with ``imu0/``, ``state_groundtruth_estimate0/`` and
+``cam0/sensor.yaml``, e.g. ``../shared/data/euroc_imu_gt/<SEQ>``), smooths the ground truth
+against the IMU as the feature-track generator does (:func:`vio.sim.tracks.fused_truth`:
+the IMU-consistent trajectory at every frame's stamp and exposure), and renders
+``vio.sim``'s textured room, sized to the flight, along it. The output is an EuRoC folder
+whose IMU rows are the source's verbatim: image-mode runs (mono, stereo, direct, hybrid)
+on real IMU noise, biases and motion, for as long as the flight lasts, where the shared
+real-image sets stop after 15-16 s.
+
+Frames: the room spans ``[0, L]`` (z up, gravity -z as in the EuRoC ground-truth world);
+the written ground truth is the fused trajectory shifted by ``offset_w`` into it (a
+translation, so SE3-aligned errors are unchanged). Clocks: a frame stamped ``s`` shows the
+pose at ``s + td`` (``tracks_cfg.td_s``; global shutter). The cameras are
+``vio.sim.render.sim_camera``'s (EuRoC intrinsics and extrinsics, no distortion).
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from vio.config import to_dict
+from vio.io.euroc import find_mav0
+from vio.sim import SimResult
+from vio.sim.config import SimConfig
+from vio.sim.render import camera_row_poses, photometric, render, sim_camera
+from vio.sim.scene import scene_around
+from vio.sim.texture import build_textures
+from vio.sim.tracks import frame_grid, fused_truth
+from vio.sim.tracks_config import TrackGenConfig
+from vio.sim.tracks_io import GT_DIR, read_groundtruth, read_table
+from vio.sim.writer import (CameraWriter, write_body_yaml, write_exposure_csv, write_groundtruth,
+                            write_truth_yaml)
+
+__all__ = ["render_flight", "flight_room"]
+
+
+WALL_MARGIN_M = 3.0          # walls beyond the flight (EuRoC's halls: most points 3-12 m away)
+MAX_TEXELS = 16e6            # level-0 texels of the whole room (~85 MB with the mip levels)
+
+
+def flight_room(p_w: np.ndarray, margin_m: float = WALL_MARGIN_M) -> tuple[np.ndarray, np.ndarray]:
+    """(room size (3,) m, offset (3,) m added to world positions) of a room whose walls
+    stand ``margin_m`` beyond the flight positions ``p_w`` (N, 3) horizontally, the floor
+    1 m below the lowest and the ceiling 1.5 m above the highest."""
+    lo = p_w.min(axis=0) - np.array([margin_m, margin_m, 1.0])
+    hi = p_w.max(axis=0) + np.array([margin_m, margin_m, 1.5])
+    return np.maximum(hi - lo, 1.0), -lo
+
+
+def _room_config(cfg: SimConfig, size: np.ndarray) -> SimConfig:
+    """``cfg`` with the room ``size``; obstacles at ``cfg``'s counts per the default room's
+    floor area (at least ``cfg``'s counts); texture density lowered where the room's
+    surfaces would need more than ``MAX_TEXELS`` texels at ``cfg.texels_per_m``."""
+    d = SimConfig()
+    scale = size[0] * size[1] / (d.room_size[0] * d.room_size[1])
+    area = 2 * (size[0] * size[1] + size[0] * size[2] + size[1] * size[2])
+    return replace(cfg, room_size=tuple(float(x) for x in size),
+                   n_boxes=int(max(cfg.n_boxes, round(cfg.n_boxes * scale))),
+                   n_pillars=int(max(cfg.n_pillars, round(cfg.n_pillars * scale))),
+                   texels_per_m=float(min(cfg.texels_per_m, np.sqrt(MAX_TEXELS / area))))
+
+
+def render_flight(src: Path, out: Path, tracks_cfg: TrackGenConfig, sim_cfg: SimConfig,
+                  progress: bool = False, overwrite: bool = False) -> SimResult:
+    """Render ``src``'s flight from ``tracks_cfg.start_s`` for ``tracks_cfg.duration_s``
+    (camera rate ``tracks_cfg.rate_hz``, offset ``td_s``; the ground-truth smoothing's
+    settings) into ``out/mav0`` with ``sim_cfg``'s cameras (``stereo``, ``image_scale``),
+    textures, obstacles and image noise (see module docstring)."""
+    src, out = find_mav0(src), Path(out)
+    mav0 = out / "mav0"
+    if mav0.exists():
+        if not overwrite:
+            raise FileExistsError(f"{mav0} exists; pass overwrite=True (--force) to replace it")
+        shutil.rmtree(mav0)
+    imu = read_table(src / "imu0" / "data.csv", 6)
+    gt, gt_p, gt_q, _ = read_groundtruth(src)
+    td = int(round(tracks_cfg.td_s * 1e9))
+    t_ns = frame_grid(tracks_cfg, gt.t_ns, imu.t_ns, td)
+    if len(t_ns) < 2:
+        raise ValueError(f"{src}: fewer than 2 camera frames fit the ground truth and IMU from "
+                         f"{tracks_cfg.start_s} s for {tracks_cfg.duration_s} s")
+    fused = fused_truth(src, tracks_cfg, imu, gt, gt_p, gt_q, t_ns, td)
+    size, offset = flight_room(fused.p_w)
+    cfg = _room_config(sim_cfg, size)
+    scene = scene_around(cfg, (fused.p_w + offset)[:, :2])
+    atlas = build_textures(scene, cfg.texels_per_m, cfg.seed)
+    names = ("cam0", "cam1") if cfg.stereo else ("cam0",)
+    cams = [sim_camera(n, cfg.image_scale, tracks_cfg.rate_hz, 0.0) for n in names]
+    mav0.mkdir(parents=True)
+    writers = [CameraWriter(mav0 / c.name, c) for c in cams]
+    p_exp, R_exp = fused.at(t_ns + td)
+    frames = range(len(t_ns))
+    if progress:
+        from tqdm import tqdm
+        frames = tqdm(frames, desc="vio sim", unit="frame")
+    for j in frames:
+        for k, (cam, wr) in enumerate(zip(cams, writers)):
+            R_rows, p_rows = R_exp[j][None].repeat(cam.height, 0), (p_exp[j] + offset)[None].repeat(cam.height, 0)
+            radiance, _ = render(scene, atlas, cam, *camera_row_poses(R_rows, p_rows, cam.T_b_c))
+            rng = np.random.default_rng([cfg.seed, 6, j, k])
+            wr.add(int(t_ns[j]), photometric(radiance, 0.0, 0.0, cfg.image_noise_sigma, rng))
+    for wr in writers:
+        wr.close(f"vio sim along {src.parent.name}'s flight (EuRoC intrinsics and T_BS, zero distortion)")
+    n_imu = _write_inertial(src, mav0, imu, fused, offset, t_ns, td, tracks_cfg.imu_margin_s)
+    exposure_path = out / "exposure.csv"     # no brightness changes: a = b = 0 for every frame
+    write_exposure_csv(exposure_path, t_ns, {c.name: (np.zeros(len(t_ns)), np.zeros(len(t_ns))) for c in cams})
+    truth_path = out / "sim_truth.yaml"
+    write_truth_yaml(truth_path, {
+        "generator": "vio.sim.flight", "source": str(src), "start_s": tracks_cfg.start_s,
+        "duration_s": tracks_cfg.duration_s, "td_s": tracks_cfg.td_s, "line_time_s": 0.0,
+        "convention": "image stamp + td = exposure time (IMU clock); the IMU rows are the source's",
+        "offset_w": [float(x) for x in offset], "gravity_w": [0.0, 0.0, -9.81],
+        "scene": scene.describe(), "config": to_dict(cfg), "tracks_config": to_dict(tracks_cfg),
+        "imu_consistent_gt": {"pos_shift_rms_m": fused.shift_pos_rms_m,
+                              "rot_shift_rms_deg": float(np.degrees(fused.shift_rot_rms_rad))},
+    })
+    return SimResult(out, mav0, truth_path, exposure_path, tuple(names), int(len(t_ns)), n_imu)
+
+
+def _write_inertial(src: Path, mav0: Path, imu, fused, offset: np.ndarray, t_ns: np.ndarray,
+                    td: int, margin_s: float) -> int:
+    """The source's IMU rows (and sensor.yaml) around the frames, the fused trajectory
+    (shifted into the room) as ground truth, body.yaml; returns the IMU rows written."""
+    (mav0 / "imu0").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src / "imu0" / "sensor.yaml", mav0 / "imu0" / "sensor.yaml")
+    margin = int(round(margin_s * 1e9))
+    lo, hi = min(t_ns[0], t_ns[0] + td) - margin, max(t_ns[-1], t_ns[-1] + td) + margin
+    imu.write_slice(mav0 / "imu0" / "data.csv", lo, hi)
+    write_groundtruth(mav0 / GT_DIR, fused.t_ns, fused.p_w + offset, fused.q_wxyz, fused.v_w,
+                      fused.bg, fused.ba)
+    write_body_yaml(mav0)
+    return int(np.count_nonzero((imu.t_ns >= lo) & (imu.t_ns <= hi)))
