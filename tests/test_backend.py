@@ -44,7 +44,11 @@ def test_real_v1_01_tracks_end_to_end(v101):
     """Real IMU + real EqVIO tracks (22 per frame): ATE 0.027 m measured; bound 0.04 m."""
     res = run_dataset(v101, PipelineConfig())
     assert res.recoveries == 0
-    assert len(res.outputs) >= 580          # initialized within the first 0.5 s
+    # a still start: the static window's frames get the initial pose (Pipeline._still_window)
+    assert len(res.outputs) == res.frames_in and res.init.method == "static" and res.init.state_s == 0.0
+    window = [o for o in res.outputs if o.t_ns < res.outputs[0].t_ns + 500_000_000]
+    assert len(window) == 10 and all(o.still for o in window)
+    assert all(o.T_w_b.equals(window[-1].T_w_b, 0.0) for o in window[:-1])
     assert _ate(res, v101) < 0.04
     bias = res.outputs[-1].bias.gyroscope()
     gt_bg = v101.groundtruth.bg[-1]

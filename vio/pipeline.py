@@ -9,10 +9,9 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
-import gtsam
 import numpy as np
 
 from vio.backend.config import BackendConfig
@@ -28,6 +27,7 @@ from vio.imu import concat
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 from vio.keyframes import KeyframePolicy, flow_px
 from vio.memory import trim_heap, tune_heap
+from vio.outputs import FrameOutput, InitInfo
 from vio.reinit import Reinit
 from vio.sync import FramePacket, carry_imu
 from vio.window_outputs import window_estimates
@@ -62,40 +62,6 @@ class PipelineConfig:
 
     def __post_init__(self) -> None:
         check_ranges(self, signed=("td_s",))
-
-
-@dataclass(frozen=True)
-class FrameOutput:
-    """The online estimate at one frame (``T_w_b`` body in world, ``v_w`` m/s)."""
-
-    index: int
-    t_ns: int
-    T_w_b: gtsam.Pose3
-    v_w: np.ndarray
-    bias: gtsam.imuBias.ConstantBias
-    keyframe: bool
-    still: bool
-    seconds: float
-    n_features: int
-    n_landmarks: int
-    td_s: float
-    T_b_c: gtsam.Pose3
-    landmark_ids: np.ndarray | None = None
-    landmarks_w: np.ndarray | None = None
-    features: FeatureFrame | None = None
-    packet: FramePacket | None = None
-
-
-@dataclass(frozen=True)
-class InitInfo:
-    """How and when the estimator was initialized: ``method`` (stereo, static, dynamic),
-    ``decided_s``: data seconds from the first frame to the decision (the latency
-    before the first output), ``state_s``: from the first frame to the initial state
-    (the first frame with a pose)."""
-
-    method: str
-    decided_s: float
-    state_s: float
 
 
 def _tracks(fr: FeatureFrame | None) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -247,8 +213,27 @@ class Pipeline:
             if not self._start(static_init(imu, pkt.t_ns), pkt, pkt):
                 return []
             self._init_buf = []
-            return [self._emit(pkt, True, True, t0)]
+            return self._still_window() + [self._emit(pkt, True, True, t0)]
         return self._dynamic_initialize(t0)
+
+    def _still_window(self) -> list[FrameOutput]:
+        """Outputs of the still window's earlier frames (``_recent`` before the newest, judged
+        still together with it by ``_still``: IMU and image flow) at the static initial
+        state, which is theirs too: the body did not move beyond the stillness thresholds.
+        The initialization's first pose moves back to the window's first frame."""
+        T, _, b = self.est.latest()
+        newest = self._recent[-1]
+        outs = [FrameOutput(p.index, p.t_ns, T, np.zeros(3), b, False, True, 0.0,
+                            0 if p.features is None else len(p.features.ids), self.est.lm.n_active(),
+                            self.est.td(), self.est.extrinsic(), None, None, p.features, p)
+                for p in self._recent if p.t_ns < newest.t_ns]
+        if outs and self.init_info is not None:
+            t_first = self._t_first if self._t_first is not None else newest.t_ns
+            self.init_info = replace(self.init_info, state_s=(outs[0].t_ns - t_first) * 1e-9)
+        for out in ([] if self.muted else outs):
+            for sink in self.sinks:
+                sink(out)
+        return outs
 
     def _dynamic_initialize(self, t0: float) -> list[FrameOutput]:
         """Dynamic alignment of the buffer once it spans ``window_s``. A refused window
