@@ -56,6 +56,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "euroc_imu_gt/MH_05_difficult), the room sized to it (vio.sim.flight)")
     p.add_argument("--start", type=float, default=0.0,
                    help="with --flight: seconds after the first ground-truth row (default 0)")
+    p.add_argument("--distort", action="store_true",
+                   help="with --flight: SRC's own camera calibrations, rendered through their distortion")
+    p.add_argument("--blur-ms", type=float, default=0.0, dest="blur_ms",
+                   help="with --flight: exposure duration rendered as motion blur (ms, default 0)")
     p.add_argument("--force", action="store_true", help="replace an existing OUT/mav0")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
     p.set_defaults(func=run)
@@ -128,16 +132,20 @@ def run(args: argparse.Namespace) -> int:
 def _run_flight(args: argparse.Namespace, cfg: SimConfig, t0: float) -> int:
     """``vio sim OUT --flight SRC``: images along SRC's real flight (``vio.sim.flight``).
     ``--seconds`` (None: to the end of the flight), ``--td``, ``--seed``, ``--mono`` /
-    ``--stereo``, ``--scale`` and ``--image-noise`` apply; the motion options do not."""
+    ``--stereo``, ``--scale`` (undistorted cameras), ``--exposure``, ``--image-noise``,
+    ``--distort`` and ``--blur-ms`` apply; the motion options do not."""
     from vio.errors import DataError
     from vio.sim.flight import render_flight
+    from vio.sim.optics import FlightOptics
     from vio.sim.tracks_config import TrackGenConfig
 
     seconds = getattr(args, "seconds", None)
     try:
         tcfg = TrackGenConfig(start_s=args.start, duration_s=seconds, td_s=cfg.td_s, seed=cfg.seed,
                               rate_hz=cfg.cam_rate_hz)
-        res = render_flight(args.flight, args.out, tcfg, cfg, progress=getattr(args, "progress", False),
+        optics = FlightOptics(distortion=getattr(args, "distort", False),
+                              blur_s=getattr(args, "blur_ms", 0.0) * 1e-3)
+        res = render_flight(args.flight, args.out, tcfg, cfg, optics, progress=getattr(args, "progress", False),
                             overwrite=getattr(args, "force", False))
     except (FileExistsError, OSError, ValueError, DataError) as exc:
         print(f"vio sim: {exc}", file=sys.stderr)

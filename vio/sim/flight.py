@@ -13,8 +13,10 @@ real-image sets stop after 15-16 s.
 Frames: the room spans ``[0, L]`` (z up, gravity -z as in the EuRoC ground-truth world);
 the written ground truth is the fused trajectory shifted by ``offset_w`` into it (a
 translation, so SE3-aligned errors are unchanged). Clocks: a frame stamped ``s`` shows the
-pose at ``s + td`` (``tracks_cfg.td_s``; global shutter). The cameras are
-``vio.sim.render.sim_camera``'s (EuRoC intrinsics and extrinsics, no distortion).
+pose at ``s + td`` (``tracks_cfg.td_s``; global shutter; with motion blur the mean over an
+exposure centred there). The cameras are ``vio.sim.render.sim_camera``'s (EuRoC
+intrinsics and extrinsics, no distortion) or, with ``FlightOptics.distortion``, the
+source's own calibrations rendered through their distortion (``vio.sim.optics``).
 """
 
 from __future__ import annotations
@@ -26,10 +28,13 @@ from pathlib import Path
 import numpy as np
 
 from vio.config import to_dict
+from vio.io.calib import load_camera
 from vio.io.euroc import find_mav0
+from vio.io.types import CameraCalib
 from vio.sim import SimResult
 from vio.sim.config import SimConfig
-from vio.sim.render import camera_row_poses, photometric, render, sim_camera
+from vio.sim.optics import DistortedView, FlightOptics, blur_offsets
+from vio.sim.render import camera_row_poses, exposure_sequence, photometric, render, sim_camera
 from vio.sim.scene import scene_around
 from vio.sim.texture import build_textures
 from vio.sim.tracks import frame_grid, fused_truth
@@ -37,6 +42,7 @@ from vio.sim.tracks_config import TrackGenConfig
 from vio.sim.tracks_io import GT_DIR, read_groundtruth, read_table
 from vio.sim.writer import (CameraWriter, write_body_yaml, write_exposure_csv, write_groundtruth,
                             write_truth_yaml)
+from vio.trajectory import interpolate_poses
 
 __all__ = ["render_flight", "flight_room"]
 
@@ -68,11 +74,13 @@ def _room_config(cfg: SimConfig, size: np.ndarray) -> SimConfig:
 
 
 def render_flight(src: Path, out: Path, tracks_cfg: TrackGenConfig, sim_cfg: SimConfig,
-                  progress: bool = False, overwrite: bool = False) -> SimResult:
+                  optics: FlightOptics = FlightOptics(), progress: bool = False,
+                  overwrite: bool = False) -> SimResult:
     """Render ``src``'s flight from ``tracks_cfg.start_s`` for ``tracks_cfg.duration_s``
     (camera rate ``tracks_cfg.rate_hz``, offset ``td_s``; the ground-truth smoothing's
     settings) into ``out/mav0`` with ``sim_cfg``'s cameras (``stereo``, ``image_scale``),
-    textures, obstacles and image noise (see module docstring)."""
+    textures, obstacles, brightness changes (``exposure_changes``) and image noise, and
+    ``optics``' lens distortion and motion blur (see module docstring)."""
     src, out = find_mav0(src), Path(out)
     mav0 = out / "mav0"
     if mav0.exists():
@@ -92,36 +100,63 @@ def render_flight(src: Path, out: Path, tracks_cfg: TrackGenConfig, sim_cfg: Sim
     scene = scene_around(cfg, (fused.p_w + offset)[:, :2])
     atlas = build_textures(scene, cfg.texels_per_m, cfg.seed)
     names = ("cam0", "cam1") if cfg.stereo else ("cam0",)
-    cams = [sim_camera(n, cfg.image_scale, tracks_cfg.rate_hz, 0.0) for n in names]
+    if optics.distortion:
+        cams = [replace(load_camera(src / n / "sensor.yaml", n), rate_hz=tracks_cfg.rate_hz) for n in names]
+    else:
+        cams = [sim_camera(n, cfg.image_scale, tracks_cfg.rate_hz, 0.0) for n in names]
     mav0.mkdir(parents=True)
-    writers = [CameraWriter(mav0 / c.name, c) for c in cams]
-    p_exp, R_exp = fused.at(t_ns + td)
-    frames = range(len(t_ns))
-    if progress:
-        from tqdm import tqdm
-        frames = tqdm(frames, desc="vio sim", unit="frame")
-    for j in frames:
-        for k, (cam, wr) in enumerate(zip(cams, writers)):
-            R_rows, p_rows = R_exp[j][None].repeat(cam.height, 0), (p_exp[j] + offset)[None].repeat(cam.height, 0)
-            radiance, _ = render(scene, atlas, cam, *camera_row_poses(R_rows, p_rows, cam.T_b_c))
-            rng = np.random.default_rng([cfg.seed, 6, j, k])
-            wr.add(int(t_ns[j]), photometric(radiance, 0.0, 0.0, cfg.image_noise_sigma, rng))
-    for wr in writers:
-        wr.close(f"vio sim along {src.parent.name}'s flight (EuRoC intrinsics and T_BS, zero distortion)")
+    exposure = _render_frames(mav0, cams, scene, atlas, cfg, optics, fused, offset, t_ns, td, progress)
     n_imu = _write_inertial(src, mav0, imu, fused, offset, t_ns, td, tracks_cfg.imu_margin_s)
-    exposure_path = out / "exposure.csv"     # no brightness changes: a = b = 0 for every frame
-    write_exposure_csv(exposure_path, t_ns, {c.name: (np.zeros(len(t_ns)), np.zeros(len(t_ns))) for c in cams})
+    exposure_path = out / "exposure.csv"
+    write_exposure_csv(exposure_path, t_ns, exposure)
     truth_path = out / "sim_truth.yaml"
     write_truth_yaml(truth_path, {
         "generator": "vio.sim.flight", "source": str(src), "start_s": tracks_cfg.start_s,
         "duration_s": tracks_cfg.duration_s, "td_s": tracks_cfg.td_s, "line_time_s": 0.0,
         "convention": "image stamp + td = exposure time (IMU clock); the IMU rows are the source's",
         "offset_w": [float(x) for x in offset], "gravity_w": [0.0, 0.0, -9.81],
-        "scene": scene.describe(), "config": to_dict(cfg), "tracks_config": to_dict(tracks_cfg),
+        "exposure_model": "image = clip(exp(a) * radiance + b + noise)", "exposure_file": exposure_path.name,
+        "optics": to_dict(optics), "scene": scene.describe(), "config": to_dict(cfg),
+        "tracks_config": to_dict(tracks_cfg),
         "imu_consistent_gt": {"pos_shift_rms_m": fused.shift_pos_rms_m,
                               "rot_shift_rms_deg": float(np.degrees(fused.shift_rot_rms_rad))},
     })
     return SimResult(out, mav0, truth_path, exposure_path, tuple(names), int(len(t_ns)), n_imu)
+
+
+def _render_frames(mav0: Path, cams: list[CameraCalib], scene, atlas, cfg: SimConfig, optics: FlightOptics,
+                   fused, offset: np.ndarray, t_ns: np.ndarray, td: int,
+                   progress: bool) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Every frame of every camera written as PNG (camera ``sensor.yaml`` too); returns
+    the brightness ``(a, b)`` per camera (``vio.sim.render.exposure_sequence``)."""
+    views = [DistortedView(c) if optics.distortion else None for c in cams]
+    writers = [CameraWriter(mav0 / c.name, c) for c in cams]
+    t_s = (t_ns - t_ns[0]) * 1e-9
+    exposure = {c.name: exposure_sequence(cfg.exposure_changes, t_s, cfg.exposure_log_gain_amp,
+                                          cfg.exposure_bias_amp, cfg.exposure_period_s,
+                                          np.random.default_rng([cfg.seed, 5, k]))
+                for k, c in enumerate(cams)}
+    dt = np.round(blur_offsets(optics) * 1e9).astype(np.int64)
+    frames = range(len(t_ns))
+    if progress:
+        from tqdm import tqdm
+        frames = tqdm(frames, desc="vio sim", unit="frame")
+    for j in frames:
+        p_w, R_w = interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, t_ns[j] + td + dt)
+        for k, (cam, view, wr) in enumerate(zip(cams, views, writers)):
+            rcam = cam if view is None else view.virtual
+            radiance = np.mean([render(scene, atlas, rcam, *camera_row_poses(
+                R[None].repeat(rcam.height, 0), p[None].repeat(rcam.height, 0), cam.T_b_c))[0]
+                for p, R in zip(p_w, R_w)], axis=0)
+            if view is not None:
+                radiance = view(radiance)
+            a, b = exposure[cam.name][0][j], exposure[cam.name][1][j]
+            rng = np.random.default_rng([cfg.seed, 6, j, k])
+            wr.add(int(t_ns[j]), photometric(radiance, a, b, cfg.image_noise_sigma, rng))
+    lens = "its own calibration, rendered through the distortion" if optics.distortion else "zero distortion"
+    for wr in writers:
+        wr.close(f"vio sim along a real flight (EuRoC intrinsics and T_BS, {lens})")
+    return exposure
 
 
 def _write_inertial(src: Path, mav0: Path, imu, fused, offset: np.ndarray, t_ns: np.ndarray,
