@@ -40,9 +40,7 @@ import numpy as np  # noqa: E402
 
 from datasets import cache_dir, settings_key  # noqa: E402  (benchmarks/)
 from vio.config import to_dict  # noqa: E402
-from vio.evaluation import evaluate  # noqa: E402
-from vio.io.euroc import load_euroc  # noqa: E402
-from vio.run import load_config, run_dataset  # noqa: E402
+from bench_stretches import run  # noqa: E402  (benchmarks/)
 from vio.sim.config import SimConfig  # noqa: E402
 from vio.sim.optics import FlightOptics  # noqa: E402
 from vio.sim.tracks_config import TrackGenConfig  # noqa: E402
@@ -83,21 +81,13 @@ def run_flight(job: tuple) -> list[str]:
     logging.disable(logging.WARNING)
     seq, start, seconds = parse_flight(text)
     folder = rendered(seq, start, seconds, seed, td_ms, optics, exposure)
-    data = load_euroc(folder)
     rows = []
     for mode in modes:
-        res = run_dataset(data, load_config(config, mode=mode), mode=mode)
-        t, p, q = res.arrays()
-        e = evaluate(t, p, q, data.groundtruth)
-        s = evaluate(t, p, q, data.groundtruth, sim3=True)
-        ms = res.frame_ms()
-        init = res.init
-        it = f"{init.decided_s:.2f}/{init.state_s:.2f}" if init else "never"
-        rows.append(f"{text:30s} {mode:7s} {e.ate_rmse:7.4f} {s.ate_rmse:7.4f} {e.path_length:6.1f} "
-                    f"{100 * e.ate_rmse / max(e.path_length, 1e-9):6.3f} {s.scale_error_pct:+7.2f} "
-                    f"{it:>11s} {res.restarts:3d} {res.imu_contradicted:3d} {len(t):5d}/{res.frames_in:<5d} "
-                    f"{np.percentile(ms, 95) if ms.size else float('nan'):6.1f} "
-                    f"{ms.max() if ms.size else float('nan'):6.1f}")
+        r = run(folder, mode, config)
+        rows.append(f"{text:30s} {mode:7s} {r['ate_mm'] / 1e3:7.4f} {r['sim3_mm'] / 1e3:7.4f} {r['path_m']:6.1f} "
+                    f"{r['ate_mm'] / 10 / max(r['path_m'], 1e-9):6.3f} {r['scale_pct']:+7.2f} "
+                    f"{r['init'].split(' ', 1)[-1].removesuffix(' s'):>11s} {r['restarts']:3d} {r['bridged']:3d} "
+                    f"{r['poses']:5d}/{r['frames']:<5d} {r['p95']:6.1f} {r['max']:6.1f}")
     return rows
 
 

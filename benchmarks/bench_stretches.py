@@ -77,6 +77,7 @@ def run(folder: Path, mode: str, config: Path | None = None) -> dict:
     ms = res.frame_ms()
     init = res.init
     return dict(ate_mm=1e3 * e.ate_rmse, sim3_mm=1e3 * s.ate_rmse, scale_pct=s.scale_error_pct,
+                path_m=e.path_length, restarts=res.restarts, bridged=res.imu_contradicted,
                 poses=len(t), frames=res.frames_in,
                 init=f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s" if init else "never",
                 p95=float(np.percentile(ms, 95)) if ms.size else float("nan"),
