@@ -12,6 +12,7 @@ from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
+import gtsam
 import numpy as np
 
 from vio.backend.config import BackendConfig
@@ -223,16 +224,11 @@ class Pipeline:
         The initialization's first pose moves back to the window's first frame."""
         T, _, b = self.est.latest()
         newest = self._recent[-1]
-        outs = [FrameOutput(p.index, p.t_ns, T, np.zeros(3), b, False, True, 0.0,
-                            0 if p.features is None else len(p.features.ids), self.est.lm.n_active(),
-                            self.est.td(), self.est.extrinsic(), None, None, p.features, p)
+        outs = [self._output(p, T, np.zeros(3), b, False, True, 0.0)
                 for p in self._recent if p.t_ns < newest.t_ns]
         if outs and self.init_info is not None:
             t_first = self._t_first if self._t_first is not None else newest.t_ns
             self.init_info = replace(self.init_info, state_s=(outs[0].t_ns - t_first) * 1e-9)
-        for out in ([] if self.muted else outs):
-            for sink in self.sinks:
-                sink(out)
         return outs
 
     def _dynamic_initialize(self, t0: float) -> list[FrameOutput]:
@@ -367,8 +363,12 @@ class Pipeline:
             nav = self.est.frame_state(pkt.features, pkt.imu.gyro[-1] if len(pkt.imu.gyro) else None, pkt)
             T, v = nav.pose(), nav.velocity()
             b, ids, pts = self.est.latest()[2], None, None
-        out = FrameOutput(pkt.index, pkt.t_ns, T, np.asarray(v), b, is_kf, still,
-                          time.perf_counter() - t0,
+        return self._output(pkt, T, np.asarray(v), b, is_kf, still, time.perf_counter() - t0, ids, pts)
+
+    def _output(self, pkt: FramePacket, T: gtsam.Pose3, v: np.ndarray, b, is_kf: bool, still: bool,
+                seconds: float, ids: np.ndarray | None = None, pts: np.ndarray | None = None) -> FrameOutput:
+        """The output of ``pkt`` at state ``T``, ``v``, ``b``, given to the sinks (unless muted)."""
+        out = FrameOutput(pkt.index, pkt.t_ns, T, v, b, is_kf, still, seconds,
                           0 if pkt.features is None else len(pkt.features.ids),
                           self.est.lm.n_active(), self.est.td(), self.est.extrinsic(), ids, pts,
                           pkt.features, pkt)
