@@ -75,8 +75,9 @@ def rendered(seq: str, start: float, seconds: float, seed: int, td_ms: float,
     return out
 
 
-def run_flight(job: tuple) -> list[str]:
-    """Render (or reuse) one flight and run each mode on it: the printed rows."""
+def run_flight(job: tuple) -> list[tuple[str, float, str]]:
+    """Render (or reuse) one flight and run each mode on it: (mode, ATE % of the path, the
+    printed row) per mode."""
     text, modes, config, seed, td_ms, optics, exposure = job
     logging.disable(logging.WARNING)
     seq, start, seconds = parse_flight(text)
@@ -84,10 +85,11 @@ def run_flight(job: tuple) -> list[str]:
     rows = []
     for mode in modes:
         r = run(folder, mode, config)
-        rows.append(f"{text:30s} {mode:7s} {r['ate_mm'] / 1e3:7.4f} {r['sim3_mm'] / 1e3:7.4f} {r['path_m']:6.1f} "
-                    f"{r['ate_mm'] / 10 / max(r['path_m'], 1e-9):6.3f} {r['scale_pct']:+7.2f} "
-                    f"{r['init'].split(' ', 1)[-1].removesuffix(' s'):>11s} {r['restarts']:3d} {r['bridged']:3d} "
-                    f"{r['poses']:5d}/{r['frames']:<5d} {r['p95']:6.1f} {r['max']:6.1f}")
+        pct = r["ate_mm"] / 10 / max(r["path_m"], 1e-9)
+        rows.append((mode, pct, f"{text:30s} {mode:7s} {r['ate_mm'] / 1e3:7.4f} {r['sim3_mm'] / 1e3:7.4f} "
+                     f"{r['path_m']:6.1f} {pct:6.3f} {r['scale_pct']:+7.2f} {r['init_s']:>11s} "
+                     f"{r['restarts']:3d} {r['bridged']:3d} {r['poses']:5d}/{r['frames']:<5d} "
+                     f"{r['p95']:6.1f} {r['max']:6.1f}"))
     return rows
 
 
@@ -114,10 +116,9 @@ def main() -> None:
     pcts: dict[str, list[float]] = {}
     with ProcessPoolExecutor(max_workers=max(1, a.workers)) as pool:
         for rows in pool.map(run_flight, jobs):
-            for row in rows:
+            for mode, pct, row in rows:
                 print(row, flush=True)
-                parts = row.split()
-                pcts.setdefault(parts[1], []).append(float(parts[5]))
+                pcts.setdefault(mode, []).append(pct)
     for mode, v in pcts.items():
         print(f"{mode}: ATE % of path mean {np.mean(v):.3f}, max {np.max(v):.3f}, under 0.2 %: "
               f"{sum(x < 0.2 for x in v)} of {len(v)}")

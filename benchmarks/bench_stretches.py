@@ -80,6 +80,7 @@ def run(folder: Path, mode: str, config: Path | None = None) -> dict:
                 path_m=e.path_length, restarts=res.restarts, bridged=res.imu_contradicted,
                 poses=len(t), frames=res.frames_in,
                 init=f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s" if init else "never",
+                init_s=f"{init.decided_s:.2f}/{init.state_s:.2f}" if init else "never",
                 p95=float(np.percentile(ms, 95)) if ms.size else float("nan"),
                 max=float(ms.max()) if ms.size else float("nan"))
 
