@@ -22,6 +22,7 @@ from vio.backend import bridge, graph, padding, recovery, smoother
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.health import HealthMonitor
 from vio.backend.init import InitialState
+from vio.backend.estimator_outputs import EstimatorOutputs
 from vio.backend.keyframe_api import FactorSource, KeyframeResult
 from vio.backend.gauge import GaugeAnchor
 from vio.backend.outlier_carry import OutlierCarry
@@ -37,7 +38,7 @@ log = logging.getLogger(__name__)
 X, V, B = graph.X, graph.V, graph.B
 
 
-class Estimator:
+class Estimator(EstimatorOutputs):
     """Fixed-lag VIO backend. Call ``initialize``, then per frame ``add_imu`` and, for
     keyframes, ``add_keyframe``; ``predict`` gives the IMU-propagated current state."""
 
@@ -359,46 +360,3 @@ class Estimator:
                 self._update(held[0], gtsam.Values(), held[1], held[2])
         except RuntimeError as exc:
             recovery.recover_latest(self, exc, self.kf_t[self.k])
-
-    # ----------------------------------------------------------------- outputs
-    def extrinsic(self) -> gtsam.Pose3:
-        return self.values.atPose3(graph.EXTRINSIC)
-
-    def td_obs(self, frame: Any) -> float:
-        """The part of the td variable the time of ``frame`` (a ``FramePacket``: ``t_ns``
-        = stamp + the sync layer's offset for it) already holds: that offset minus
-        ``td_applied_s`` (s); 0 for anything else. Non-zero once the sync layer applies
-        the fed-back estimate (``CalibConfig.td_feedback_s``)."""
-        t, stamp = getattr(frame, "t_ns", None), getattr(frame, "stamp_ns", None)
-        if t is None or stamp is None:
-            return 0.0
-        return (int(t) - int(stamp)) * 1e-9 - self.td_applied_s
-
-    def td(self) -> float:
-        """Total camera-to-IMU offset (s): the sync layer's constant plus the estimate."""
-        return self.td_applied_s + float(self.values.atVector(graph.TD)[0])
-
-    def landmarks_w(self) -> tuple[np.ndarray, np.ndarray]:
-        """Ids (N,) and world points (N, 3) of the landmarks in the window."""
-        return self.lm.points_w(self.values)
-
-    def check_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`landmarks_w` less those that entered without parallax (guessed depths,
-        ``LandmarkManager.weak_ids``): what the IMU check's PnP stands on."""
-        ids, pts = self.landmarks_w()
-        keep = ~np.isin(ids, self.lm.weak_ids())
-        return ids[keep], pts[keep]
-
-    def frame_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`check_points` once per estimate (kept until ``values`` is replaced; the
-        factors' refined depths may move by a fraction of a mm meanwhile): what the frames
-        between keyframes check their prediction against (1.1 -> 0.1 ms a frame on real
-        MH_01 stereo)."""
-        if self._frame_points[0] is not self.values:
-            self._frame_points = (self.values, self.check_points())
-        return self._frame_points[1]
-
-    def window_poses(self) -> dict[int, tuple[int, gtsam.Pose3]]:
-        """Smoothed poses of the keyframes in the window: k -> (t_ns, T_w_b)."""
-        return {k: (t, self.values.atPose3(X(k))) for k, t in self.kf_t.items()
-                if self.values.exists(X(k))}

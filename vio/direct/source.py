@@ -40,7 +40,6 @@ next keyframe.
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 
 import gtsam
@@ -49,16 +48,14 @@ import numpy as np
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch
 from factors.photometric_host import HostParams, HostPoints, HostTiming, StereoHost, host_factor
-from vio.backend.bridge import contradicts, within_hold
 from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
-from vio.direct.imu_check import free_alignment, pose_offset, window_guess
-from vio.direct.coarse_ref import host_in_camera, keyframe_reference
+from vio.direct.coarse_ref import host_in_camera
 from vio.direct.keyframe import KeyframeData, StereoRig, build_keyframe
 from vio.direct.records import PointSnapshot, TrackRecord, snapshot
+from vio.direct.source_track import TrackFrameStep
 from vio.direct.temporal import host_candidates
-from vio.direct.trackframe import MotionPrior, body_pose, track_frame
 from vio.io.euroc import read_image
 
 log = logging.getLogger(__name__)
@@ -78,7 +75,7 @@ class Host:
     open: bool = True
 
 
-class PhotometricSource:
+class PhotometricSource(TrackFrameStep):
     """The direct-mode factor source (module docstring); ``rig`` the stereo geometry."""
 
     key_dims = {"a": 2}
@@ -232,110 +229,6 @@ class PhotometricSource:
         vals = self.est.values
         cands = [f for f, fd in self.kfs.items() if f < k and fd.in_graph and vals.exists(A(f))]
         return self.kfs[max(cands)] if cands else None
-
-    def _track(self, k: int, kd: KeyframeData, pred: gtsam.NavState, v: gtsam.Values) -> np.ndarray:
-        """TrackFrame of keyframe k against the previous keyframe; the guess of A(k)."""
-        prev = self._latest_in_graph(k)
-        if prev is None:
-            return np.zeros(2)
-        vals, T_b_c, pc = self.est.values, self.rig.T_b_c, self.cfg.points
-        ab_p = np.asarray(vals.atVector(A(prev.k)), float)
-        if not self.cfg.track.enabled:
-            return ab_p
-        T_w_cp = vals.atPose3(X(prev.k)).compose(T_b_c)
-        T_pred = v.atPose3(X(k))
-        T_init = T_w_cp.between(T_pred.compose(T_b_c))
-        dt_ns = kd.t_ns - prev.t_ns
-        held = within_hold(self.est, kd.t_ns)      # the IMU is suspect: neither its guess nor its prior
-        if held:
-            T_init = window_guess(self.kfs, vals, prev, T_w_cp, T_b_c, kd.t_ns) or T_init
-        prior = None if held else MotionPrior.from_imu(T_init, self.est.pim, dt_ns * 1e-9, self.cfg.track)
-        t0 = time.perf_counter()
-        ref = self._reference(prev, ab_p, T_w_cp)
-        try:
-            res = track_frame(ref, kd.pyramid(self.cfg.track.levels), T_init, ab_p, self.cfg.track, prior)
-        except (ArithmeticError, np.linalg.LinAlgError) as exc:   # a numerical failure is a failure
-            res = None
-            log.warning("TrackFrame failed at keyframe %d (%s: %s); IMU prediction kept", k,
-                        type(exc).__name__, exc)
-        ms = (time.perf_counter() - t0) * 1e3
-        # held, the run above was already the prior-free one from the visual guess
-        if (res is None or not res.ok) and self.cfg.track.retry_visual and not held:
-            ab = self._retry(k, kd, prev, ab_p, T_w_cp, v, ref)
-            if ab is not None:
-                self._release(kd)
-                return ab
-        if res is None:
-            self._release(kd)
-            self.tracks.append(TrackRecord(k, kd.t_ns, float("inf"), False, False, float("nan"), float("nan"), ms))
-            return ab_p
-        T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
-        dist, ang = pose_offset(T_pred, T_tr)
-        used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
-        if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, ang, dt_ns, held):
-            used = True      # converged against the IMU prior, and still away from the prediction
-            free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p, ref)
-            if free is not None and free[0].rmse <= res.rmse:   # the prior is the contradicted IMU (imu_check)
-                res, T_tr = free
-                dist, ang = pose_offset(T_pred, T_tr)
-                if not contradicts(self.est.cfg.bridge, dist, ang, dt_ns * 1e-9):
-                    self.contradicted_k = None   # without the prior, vision agrees with the IMU
-        self._release(kd)
-        if used:
-            v.update(X(k), T_tr)
-        ms = (time.perf_counter() - t0) * 1e3      # with the prior-free run, where there was one
-        self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, res.ok, used, dist, ang, ms))
-        if not res.ok:
-            log.warning("TrackFrame failed at keyframe %d: rmse %.1f (IMU prediction kept)", k, res.rmse)
-        return np.array([res.a, res.b]) if res.ok else ab_p
-
-    def _retry(self, k: int, kd: KeyframeData, prev: KeyframeData, ab_p: np.ndarray, T_w_cp: gtsam.Pose3,
-               v: gtsam.Values, ref) -> np.ndarray | None:
-        """After a failed TrackFrame: once more without the IMU prior from the visual guess
-        (``vio.direct.imu_check``). Where it converges as ``bridge.contradicts`` says (3 cm from
-        the IMU prediction, within 1 degree), the IMU is contradicted: its pose becomes
-        X(k)'s guess and the affine guess of A(k) is returned; else None."""
-        t0 = time.perf_counter()
-        free = free_alignment(self.cfg, self.kfs, self.est.values, prev, kd, T_w_cp, self.rig.T_b_c, ab_p, ref) \
-            if self.est.cfg.bridge.imu_check else None
-        if free is None:
-            return None
-        res, T_tr = free
-        dist, ang = pose_offset(v.atPose3(X(k)), T_tr)
-        if not self._contradicts(k, dist, ang, kd.t_ns - prev.t_ns, False):
-            return None
-        v.update(X(k), T_tr)
-        self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, ang, (time.perf_counter() - t0) * 1e3))
-        return np.array([res.a, res.b])
-
-    def _reference(self, prev: KeyframeData, ab: np.ndarray, T_w_cp: gtsam.Pose3):
-        """TrackFrame's reference of ``prev`` (camera ``T_w_cp``, affine ``ab``): its own
-        points and the window's (``vio.direct.coarse_ref``, ``TrackConfig.window_cell_px``)."""
-        if self.cfg.track.window_cell_px <= 0:
-            return prev.reference(ab, self.cfg)
-        return keyframe_reference(prev, ab, T_w_cp, self.live_points(), self.est.values, self.rig.T_b_c,
-                                  self.cfg.track)
-
-    def _release(self, kd: KeyframeData) -> None:
-        """Drop keyframe ``kd``'s coarse pyramid levels after its TrackFrame; with the
-        window's points it is the next reference image (``_reference`` drops them then)."""
-        if self.cfg.track.window_cell_px <= 0:
-            kd.release_pyramid()      # its own reference (built by the keyframe worker) is kept
-
-    def _contradicts(self, k: int, dist: float, ang: float, dt_ns: int, held: bool) -> bool:
-        """:func:`vio.backend.bridge.contradicts` for keyframe k's converged TrackFrame,
-        ``dist`` m / ``ang`` rad from the IMU prediction over ``dt_ns``, ``held``: within the
-        IMU hold; recorded for :meth:`imu_contradicted`."""
-        if not contradicts(self.est.cfg.bridge, dist, ang, dt_ns * 1e-9, held):
-            return False
-        self.contradicted_k = k
-        log.info("keyframe %d: TrackFrame converged %.3f m / %.2f deg from the IMU prediction over %.2f s",
-                 k, dist, np.degrees(ang), dt_ns * 1e-9)
-        return True
-
-    def imu_contradicted(self, k: int) -> bool:
-        """Whether keyframe k's TrackFrame contradicted the IMU prediction (:meth:`_retry`)."""
-        return self.contradicted_k == k
 
     def _visible_fraction(self, host: Host, T_w_bj: gtsam.Pose3) -> float:
         """Share of ``host``'s points alive, in front of and inside a frame at ``T_w_bj``."""
