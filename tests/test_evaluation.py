@@ -31,3 +31,34 @@ def test_sim3_scale_is_the_estimate_shortfall(shrink):
     assert sim.ate_rmse < 1e-6 and sim.alignment == "sim3"
     assert se3.scale == 1.0
     assert (se3.ate_rmse > 0.01) == (shrink != 1.0)
+
+
+def test_segments_find_the_stretch_whose_motion_is_too_long(tmp_path, capsys):
+    """The helix's seconds 4-6 stretched by 20 % (later positions carried along): the
+    stretch reports +20 %, the others 0 %, and the error grows from there; a still stretch
+    has no length; the CLI prints the table; a non-positive length is refused."""
+    gt = _helix(201)                        # 20 poses a second over 10 s
+    t = gt.t_ns * 1e-9
+    p = gt.p_w.copy()
+    a, b = np.searchsorted(t, 4.0), np.searchsorted(t, 6.0)
+    p[a:b] = p[a] + 1.2 * (gt.p_w[a:b] - gt.p_w[a])
+    p[b:] += p[b - 1] + (gt.p_w[b] - gt.p_w[b - 1]) - gt.p_w[b]
+    res = evaluate(gt.t_ns, p, gt.q_wxyz, gt, segments_s=2.0)
+    pct = [s.length_pct for s in res.segments]
+    assert [s.t0_s for s in res.segments] == [0.0, 2.0, 4.0, 6.0, 8.0]
+    assert pct[2] == pytest.approx(20.0, abs=0.5)
+    assert all(abs(x) < 0.5 for i, x in enumerate(pct) if i != 2)
+    assert sum(s.n for s in res.segments) == res.n_matched
+    still = GroundTruth(gt.t_ns, np.where((t < 2.0)[:, None], gt.p_w[0], gt.p_w), gt.q_wxyz)
+    first = evaluate(still.t_ns, still.p_w, still.q_wxyz, still, segments_s=2.0).segments[0]
+    assert first.path_m == 0.0 and np.isnan(first.length_pct)
+    with pytest.raises(ValueError, match="positive"):
+        evaluate(gt.t_ns, p, gt.q_wxyz, gt, segments_s=0.0)
+    from vio.cli import main
+    from vio.trajectory import write_tum
+    est_file, gt_file = tmp_path / "est.txt", tmp_path / "gt.txt"
+    write_tum(est_file, gt.t_ns, [gtsam.Pose3(gtsam.Rot3(), x) for x in p])
+    write_tum(gt_file, gt.t_ns, [gtsam.Pose3(gtsam.Rot3(), x) for x in gt.p_w])
+    assert main(["eval", str(est_file), str(gt_file), "--segments", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "length vs truth [%]" in out and "+20.0" in out

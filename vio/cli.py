@@ -60,6 +60,8 @@ def _add_eval(sub) -> None:
     p.add_argument("groundtruth", type=Path, help="TUM file, EuRoC data.csv or dataset folder")
     p.add_argument("--sim3", action="store_true", help="Sim3 alignment (monocular scale)")
     p.add_argument("--plot", type=Path, help="save a top-view plot (PNG)")
+    p.add_argument("--segments", type=float, metavar="SECONDS",
+                   help="also per stretch of SECONDS: path, mean error, the estimate's length vs the truth")
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -87,11 +89,15 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from vio.evaluation import evaluate_files
-    r = evaluate_files(args.estimate, args.groundtruth, args.sim3, args.plot)
+    r = evaluate_files(args.estimate, args.groundtruth, args.sim3, args.plot, args.segments)
     print(f"matched poses   {r.n_matched}")
     print(f"path length     {r.path_length:.2f} m")
     print(f"ATE RMSE        {r.ate_rmse:.4f} m ({r.alignment}; mean {r.ate_mean:.4f}, max {r.ate_max:.4f})")
     print(f"RPE trans RMSE  {r.rpe_trans_rmse:.4f} m, rot {r.rpe_rot_rmse_deg:.3f} deg")
+    if r.segments:
+        print("stretch [s]      poses  path [m]  mean error [m]  length vs truth [%]")
+        for g in r.segments:
+            print(f"{g.t0_s:6.1f}-{g.t1_s:<6.1f}  {g.n:7d}  {g.path_m:8.2f}  {g.ate_mean:14.4f}  {g.length_pct:+19.1f}")
     if args.plot:
         print(f"plot            {args.plot}")
     return 0

@@ -15,6 +15,24 @@ from vio.io.types import GroundTruth
 
 
 @dataclass(frozen=True)
+class SegmentErrors:
+    """One stretch of a run, ``[t0_s, t1_s)`` seconds after the first matched pose (the
+    last one to the end: a tail shorter than half a stretch joins it):
+    ``n`` poses, the ground truth's path ``path_m`` (m), the mean position error after the
+    whole run's alignment ``ate_mean`` (m: where the run's error is) and the estimate's
+    length over the stretch against the ground truth, ``length_pct`` (%, from the stretch's
+    own Sim3 alignment; negative: short; NaN where the stretch has fewer than 3 poses or
+    no motion): a monocular run's scale as it goes."""
+
+    t0_s: float
+    t1_s: float
+    n: int
+    path_m: float
+    ate_mean: float
+    length_pct: float
+
+
+@dataclass(frozen=True)
 class TrajectoryErrors:
     """ATE (absolute translation error, m) and RPE (relative pose error over
     ``rpe_delta_m`` metres of path: translation m, rotation deg) statistics. ``scale``:
@@ -30,6 +48,7 @@ class TrajectoryErrors:
     path_length: float
     alignment: str
     scale: float = 1.0
+    segments: tuple[SegmentErrors, ...] = ()
 
     @property
     def scale_error_pct(self) -> float:
@@ -59,10 +78,42 @@ def overlap_problem(est_t_ns: np.ndarray, gt: GroundTruth, max_diff_s: float = 0
             f"[{est_t_ns[0] * 1e-9:.3f}, {est_t_ns[-1] * 1e-9:.3f}] s ({n} poses within {max_diff_s * 1e3:.0f} ms)")
 
 
+def _segments(ref, est, seconds: float) -> tuple[SegmentErrors, ...]:
+    """:class:`SegmentErrors` of consecutive ``seconds``-long stretches of the associated
+    trajectories ``ref`` and ``est`` (evo, ``est`` already aligned to ``ref``)."""
+    from evo.core.geometry import GeometryException, umeyama_alignment
+    t = np.asarray(est.timestamps, float) - float(est.timestamps[0])
+    pe, pr = np.asarray(est.positions_xyz, float), np.asarray(ref.positions_xyz, float)
+    err = np.linalg.norm(pe - pr, axis=1)
+    starts = list(np.arange(0.0, t[-1] + 1e-9, seconds))
+    if len(starts) > 1 and t[-1] - starts[-1] < 0.5 * seconds:
+        starts.pop()                   # a short tail joins the last stretch
+    out = []
+    for i, a in enumerate(starts):
+        sel = (t >= a) & (t < (starts[i + 1] if i + 1 < len(starts) else np.inf))
+        if not sel.any():
+            continue
+        path = float(np.linalg.norm(np.diff(pr[sel], axis=0), axis=1).sum()) if sel.sum() > 1 else 0.0
+        length = float("nan")
+        if sel.sum() >= 3 and path > 1e-6:
+            try:
+                c = umeyama_alignment(pe[sel].T, pr[sel].T, with_scale=True)[2]
+                length = 100.0 * (1.0 / c - 1.0) if c > 0 else float("nan")
+            except GeometryException:   # degenerate (collinear or still) stretch
+                pass
+        end = starts[i + 1] if i + 1 < len(starts) else max(a + seconds, float(t[-1]))
+        out.append(SegmentErrors(float(a), float(end), int(sel.sum()), path, float(err[sel].mean()), length))
+    return tuple(out)
+
+
 def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt: GroundTruth,
-             sim3: bool = False, max_diff_s: float = 0.01, rpe_delta_m: float = 1.0
-             ) -> TrajectoryErrors:
-    """Associate by time, align (SE3, or Sim3 for mono), and compute ATE/RPE."""
+             sim3: bool = False, max_diff_s: float = 0.01, rpe_delta_m: float = 1.0,
+             segments_s: float | None = None) -> TrajectoryErrors:
+    """Associate by time, align (SE3, or Sim3 for mono), and compute ATE/RPE; with
+    ``segments_s``, also the errors of each ``segments_s``-second stretch
+    (:class:`SegmentErrors`)."""
+    if segments_s is not None and not segments_s > 0:
+        raise ValueError(f"segments must be a positive number of seconds, got {segments_s}")
     from evo.core import metrics, sync
     problem = overlap_problem(est_t_ns, gt, max_diff_s)
     if problem is not None:
@@ -87,14 +138,15 @@ def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt
         rpe_t, rpe_r = rt.get_statistic(metrics.StatisticsType.rmse), rr.get_statistic(metrics.StatisticsType.rmse)
     except Exception:  # noqa: BLE001 - too short for the RPE delta
         rpe_t = rpe_r = float("nan")
+    segs = _segments(ref, est, segments_s) if segments_s else ()
     return TrajectoryErrors(int(est.num_poses), float(s["rmse"]), float(s["mean"]), float(s["max"]),
-                            float(rpe_t), float(rpe_r), path, "sim3" if sim3 else "se3", float(scale))
+                            float(rpe_t), float(rpe_r), path, "sim3" if sim3 else "se3", float(scale), segs)
 
 
 def evaluate_files(est_path: str | Path, gt_path: str | Path, sim3: bool = False,
-                   plot: str | Path | None = None) -> TrajectoryErrors:
+                   plot: str | Path | None = None, segments_s: float | None = None) -> TrajectoryErrors:
     """ATE/RPE of a TUM estimate against a TUM file, an ASL data.csv (EuRoC estimate or
-    TUM-VI mocap0) or a dataset folder holding one."""
+    TUM-VI mocap0) or a dataset folder holding one (``segments_s``: see :func:`evaluate`)."""
     from vio.io.euroc import read_tum
     from vio.io.load import load_groundtruth
     est = read_tum(Path(est_path))
@@ -102,7 +154,7 @@ def evaluate_files(est_path: str | Path, gt_path: str | Path, sim3: bool = False
     problem = overlap_problem(est.t_ns, gt)
     if problem is not None:
         raise ValueError(f"{est_path} vs {gt_path}: {problem}")
-    res = evaluate(est.t_ns, est.p_w, est.q_wxyz, gt, sim3)
+    res = evaluate(est.t_ns, est.p_w, est.q_wxyz, gt, sim3, segments_s=segments_s)
     if plot is not None:
         save_plot(est, gt, res, Path(plot), sim3)
     return res
