@@ -62,3 +62,19 @@ def test_segments_find_the_stretch_whose_motion_is_too_long(tmp_path, capsys):
     assert main(["eval", str(est_file), str(gt_file), "--segments", "2"]) == 0
     out = capsys.readouterr().out
     assert "length vs truth [%]" in out and "+20.0" in out
+
+
+def test_vio_run_prints_the_stretches_of_its_online_poses(capsys):
+    """``vio run --segments 2`` on the real V1_01 tracks (6 s of them): the table follows the
+    ATE lines, one row per 2 s; a non-positive length is a usage error."""
+    from conftest import shared
+    from vio.cli import main
+    root = shared("euroc_V1_01_30s_features")
+    assert main(["run", str(root), "--max-frames", "120", "--no-progress", "--segments", "2"]) == 0
+    out = capsys.readouterr().out
+    table = out[out.index("ATE RMSE"):].splitlines()
+    head = next(i for i, line in enumerate(table) if line.startswith("stretch [s]"))
+    assert [row.split()[0] for row in table[head + 1:head + 4]] == ["0.0-2.0", "2.0-4.0", "4.0-6.0"]
+    with pytest.raises(SystemExit) as err:
+        main(["run", "--demo", "--segments", "0"])
+    assert err.value.code == 2 and "argument --segments" in capsys.readouterr().err

@@ -16,7 +16,7 @@ from vio.threads import one_blas_thread
 
 one_blas_thread()   # before numpy loads: one BLAS thread per process (vio.threads)
 
-from vio.config import positive_int  # noqa: E402
+from vio.config import positive_float, positive_int  # noqa: E402
 from vio.errors import ConfigError, DataError  # noqa: E402
 
 
@@ -40,6 +40,8 @@ def _add_run(sub) -> None:
                    help="bag topics, comma-separated: the IMU and 1-2 cameras (cam0 first)")
     p.add_argument("--groundtruth", type=Path, help="ground truth to evaluate against (TUM file, "
                    "ASL data.csv or a dataset folder); default: the dataset's own")
+    p.add_argument("--segments", type=positive_float, metavar="SECONDS",
+                   help="with ground truth: the error and scale per stretch of SECONDS (as vio eval)")
     p.add_argument("--map", type=Path, help="save the landmark map (.npz) for `vio plan`")
     p.add_argument("--smooth", type=Path, help="write a Kalman-smoothed planar track (TUM)")
     p.add_argument("--rerun", action="store_true", help="stream to a Rerun viewer")
@@ -60,7 +62,7 @@ def _add_eval(sub) -> None:
     p.add_argument("groundtruth", type=Path, help="TUM file, EuRoC data.csv or dataset folder")
     p.add_argument("--sim3", action="store_true", help="Sim3 alignment (monocular scale)")
     p.add_argument("--plot", type=Path, help="save a top-view plot (PNG)")
-    p.add_argument("--segments", type=float, metavar="SECONDS",
+    p.add_argument("--segments", type=positive_float, metavar="SECONDS",
                    help="also per stretch of SECONDS: path, mean error, the estimate's length vs the truth")
 
 
@@ -88,16 +90,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from vio.evaluation import evaluate_files
+    from vio.evaluation import evaluate_files, segment_lines
     r = evaluate_files(args.estimate, args.groundtruth, args.sim3, args.plot, args.segments)
     print(f"matched poses   {r.n_matched}")
     print(f"path length     {r.path_length:.2f} m")
     print(f"ATE RMSE        {r.ate_rmse:.4f} m ({r.alignment}; mean {r.ate_mean:.4f}, max {r.ate_max:.4f})")
     print(f"RPE trans RMSE  {r.rpe_trans_rmse:.4f} m, rot {r.rpe_rot_rmse_deg:.3f} deg")
-    if r.segments:
-        print("stretch [s]      poses  path [m]  mean error [m]  length vs truth [%]")
-        for g in r.segments:
-            print(f"{g.t0_s:6.1f}-{g.t1_s:<6.1f}  {g.n:7d}  {g.path_m:8.2f}  {g.ate_mean:14.4f}  {g.length_pct:+19.1f}")
+    for line in segment_lines(r):
+        print(line)
     if args.plot:
         print(f"plot            {args.plot}")
     return 0

@@ -90,6 +90,17 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0 (a clear usage error otherwise)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (x > 0 and x < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return x
+
+
 def positive_int(text: str) -> int:
     """An argparse type: an integer >= 1 (a clear usage error otherwise)."""
     try:

@@ -14,6 +14,11 @@ import numpy as np
 from vio.io.types import GroundTruth
 
 
+# a stretch's own scale needs its ground truth to spread this much (RMS about its mean, m):
+# over a still stretch the ratio is the ground truth's millimetre noise against the estimate's
+MIN_SEGMENT_SPREAD_M = 0.02
+
+
 @dataclass(frozen=True)
 class SegmentErrors:
     """One stretch of a run, ``[t0_s, t1_s)`` seconds after the first matched pose (the
@@ -21,8 +26,8 @@ class SegmentErrors:
     ``n`` poses, the ground truth's path ``path_m`` (m), the mean position error after the
     whole run's alignment ``ate_mean`` (m: where the run's error is) and the estimate's
     length over the stretch against the ground truth, ``length_pct`` (%, from the stretch's
-    own Sim3 alignment; negative: short; NaN where the stretch has fewer than 3 poses or
-    no motion): a monocular run's scale as it goes."""
+    own Sim3 alignment; negative: short; NaN where the stretch has fewer than 3 poses or its
+    ground truth spreads less than ``MIN_SEGMENT_SPREAD_M``): a monocular run's scale as it goes."""
 
     t0_s: float
     t1_s: float
@@ -95,7 +100,8 @@ def _segments(ref, est, seconds: float) -> tuple[SegmentErrors, ...]:
             continue
         path = float(np.linalg.norm(np.diff(pr[sel], axis=0), axis=1).sum()) if sel.sum() > 1 else 0.0
         length = float("nan")
-        if sel.sum() >= 3 and path > 1e-6:
+        spread = float(np.sqrt(((pr[sel] - pr[sel].mean(axis=0)) ** 2).sum(axis=1).mean()))
+        if sel.sum() >= 3 and spread >= MIN_SEGMENT_SPREAD_M:
             try:
                 c = umeyama_alignment(pe[sel].T, pr[sel].T, with_scale=True)[2]
                 length = 100.0 * (1.0 / c - 1.0) if c > 0 else float("nan")
@@ -141,6 +147,16 @@ def evaluate(est_t_ns: np.ndarray, est_p: np.ndarray, est_q_wxyz: np.ndarray, gt
     segs = _segments(ref, est, segments_s) if segments_s else ()
     return TrajectoryErrors(int(est.num_poses), float(s["rmse"]), float(s["mean"]), float(s["max"]),
                             float(rpe_t), float(rpe_r), path, "sim3" if sim3 else "se3", float(scale), segs)
+
+
+def segment_lines(res: TrajectoryErrors) -> list[str]:
+    """The table of ``res.segments`` (empty without), as ``vio eval`` and ``vio run`` print it."""
+    if not res.segments:
+        return []
+    return ["stretch [s]      poses  path [m]  mean error [m]  length vs truth [%]"] + [
+        f"{g.t0_s:6.1f}-{g.t1_s:<6.1f}  {g.n:7d}  {g.path_m:8.2f}  {g.ate_mean:14.4f}  "
+        + (f"{g.length_pct:+19.1f}" if np.isfinite(g.length_pct) else f"{'n/a (still)':>19}")
+        for g in res.segments]
 
 
 def evaluate_files(est_path: str | Path, gt_path: str | Path, sim3: bool = False,

@@ -59,6 +59,17 @@ def _check_outputs(args: argparse.Namespace) -> None:
         raise ValueError("--smooth needs --out (the raw track it smooths)")
 
 
+def _segments(res: RunResult, data, seconds: float | None) -> list[str]:
+    """``vio eval --segments``' table of the run's online poses (``--segments``), where the
+    ground truth covers them; [] otherwise."""
+    if not seconds or data.groundtruth is None or not res.outputs:
+        return []
+    from vio.evaluation import evaluate, overlap_problem, segment_lines
+    if overlap_problem(res.arrays()[0], data.groundtruth) is not None:
+        return []
+    return segment_lines(evaluate(*res.arrays(), data.groundtruth, segments_s=seconds))
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Entry point of ``vio run``."""
     _check_outputs(args)
@@ -104,6 +115,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         from vio.nav.cli import smooth_file
         smooth_file(args.out, args.smooth)
     for line in summary(res, data):
+        print(line)
+    for line in _segments(res, data, getattr(args, "segments", None)):
         print(line)
     if mode in PHOTOMETRIC_MODES and not cfg.direct.points.exposure_td:
         print("td note         the photometric term holds td at the sync layer's value (--td); to "
