@@ -66,7 +66,8 @@ def test_segments_find_the_stretch_whose_motion_is_too_long(tmp_path, capsys):
 
 def test_vio_run_prints_the_stretches_of_its_online_poses(capsys):
     """``vio run --segments 2`` on the real V1_01 tracks (6 s of them): the table follows the
-    ATE lines, one row per 2 s; a non-positive length is a usage error."""
+    ATE lines, one row per 2 s; without ground truth (the shipped demo) a line says so; a
+    non-positive length is a usage error."""
     from conftest import shared
     from vio.cli import main
     root = shared("euroc_V1_01_30s_features")
@@ -75,6 +76,8 @@ def test_vio_run_prints_the_stretches_of_its_online_poses(capsys):
     table = out[out.index("ATE RMSE"):].splitlines()
     head = next(i for i, line in enumerate(table) if line.startswith("stretch [s]"))
     assert [row.split()[0] for row in table[head + 1:head + 4]] == ["0.0-2.0", "2.0-4.0", "4.0-6.0"]
+    assert main(["run", "--demo", "--max-frames", "30", "--no-progress", "--segments", "2"]) == 0
+    assert "segments        not evaluated: no ground truth" in capsys.readouterr().out
     with pytest.raises(SystemExit) as err:
         main(["run", "--demo", "--segments", "0"])
     assert err.value.code == 2 and "argument --segments" in capsys.readouterr().err

@@ -155,7 +155,7 @@ def segment_lines(res: TrajectoryErrors) -> list[str]:
         return []
     return ["stretch [s]      poses  path [m]  mean error [m]  length vs truth [%]"] + [
         f"{g.t0_s:6.1f}-{g.t1_s:<6.1f}  {g.n:7d}  {g.path_m:8.2f}  {g.ate_mean:14.4f}  "
-        + (f"{g.length_pct:+19.1f}" if np.isfinite(g.length_pct) else f"{'n/a (still)':>19}")
+        + (f"{g.length_pct:+19.1f}" if np.isfinite(g.length_pct) else f"{'n/a':>19}")
         for g in res.segments]
 
 

@@ -60,13 +60,16 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
 
 def _segments(res: RunResult, data, seconds: float | None) -> list[str]:
-    """``vio eval --segments``' table of the run's online poses (``--segments``), where the
-    ground truth covers them; [] otherwise."""
-    if not seconds or data.groundtruth is None or not res.outputs:
+    """``vio eval --segments``' table of the run's online poses (``--segments``), or the
+    line saying why there is none (no ground truth, no overlap, no pose)."""
+    if not seconds:
         return []
+    if data.groundtruth is None or not res.outputs:
+        return ["segments        not evaluated: " + ("no ground truth" if data.groundtruth is None else "no pose")]
     from vio.evaluation import evaluate, overlap_problem, segment_lines
-    if overlap_problem(res.arrays()[0], data.groundtruth) is not None:
-        return []
+    problem = overlap_problem(res.arrays()[0], data.groundtruth)
+    if problem is not None:
+        return [f"segments        not evaluated: {problem}"]
     return segment_lines(evaluate(*res.arrays(), data.groundtruth, segments_s=seconds))
 
 
