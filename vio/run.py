@@ -130,7 +130,8 @@ def resolve_mode(data: EurocDataset, mode: str) -> str:
 def td_feedback(pipe: Pipeline, cfg: PipelineConfig) -> Callable[[], float] | None:
     """The td the sync layer applies to the next frame: the estimator's estimate once it
     differs from the applied one by ``backend.calib.td_feedback_s``, in steps of at most
-    ``td_feedback_step_s``, from ``td_feedback_after_s`` after initialization on (see
+    ``td_feedback_step_s``, from ``td_feedback_after_s`` after initialization on, and the
+    initialization's own estimate at once with ``td_feedback_at_init`` (see
     ``CalibConfig``); None when td is not estimated, the feedback is off, or the estimator
     runs in the live backend process (``cfg.live``: its estimate is not here)."""
     cc = cfg.backend.calib
@@ -142,6 +143,8 @@ def td_feedback(pipe: Pipeline, cfg: PipelineConfig) -> Callable[[], float] | No
         if not pipe.est.initialized:
             return applied[0]
         t = pipe.est.kf_t[pipe.est.k] * 1e-9
+        if not start and cc.td_feedback_at_init:   # the initialization's offset, at once
+            applied[0] = float(pipe.est.td())
         start[:] = start or [t]
         if t - start[0] >= cc.td_feedback_after_s:
             d = pipe.est.td() - applied[0]

@@ -160,6 +160,18 @@ class CalibConfig:
     1 ms per frame rather than 5: boxwall MH_03 (seed 300) true +25 ms ATE 0.658 -> 0.222 m
     (0.261 m without feedback), our generator's 0.054 -> 0.051 m.
 
+    ``td_feedback_at_init``: the sync layer takes the initialization's td at once (a dynamic
+    initialization's search, ``vio.backend.td_init``, found 20.3-30.3 ms for a true 25 on
+    hand-held starts), then follows the estimate as above; the first window and seconds
+    were otherwise spent with the whole offset left to the td factor's velocity shifts (the
+    generator variants at true 25 ms were 1.2-1.9x their td = 0 twins, 1.08x with the sync
+    layer at the truth from the start). Both feature tables (``benchmarks/bench_configs.py
+    --sets variants,features``, 48 runs): twins within 1.25x 18 -> 21 of 25 (variants 11 ->
+    14 of 17; far-walls 1.86 -> 1.04x, raw-gt-nearest 1.28 -> 1.04x; still out: outliers
+    1.69x, boxwall MH_03 at 12 / 25 ms 1.60 / 1.45x), geometric-mean ATE 0.0405 -> 0.0391 m,
+    under 0.2 % of the path 41 -> 42 of 48, td within 0.5 ms 46 of 47 either way; still
+    starts (static initialization: no search) unchanged, real V1_01 tracks 0.0191 m.
+
     ``td_reanchor_s``: once the sync layer applies this much more of the fed-back td than at
     the window's last (re)start, and td is known to ``td_reanchor_sigma_s`` (1 sigma), the
     window restarts once at the current state and td (``vio.backend.td_reanchor``;
@@ -182,6 +194,7 @@ class CalibConfig:
     td_feedback_s: float = 0.002
     td_feedback_step_s: float = 0.001
     td_feedback_after_s: float = 10.0
+    td_feedback_at_init: bool = True
     td_reanchor_s: float = 0.005
     td_reanchor_sigma_s: float = 0.001
 
