@@ -25,9 +25,12 @@ def batch_solution(cfg, data, n: int, t_ns: int):
 
     from vio.backend import graph
     from vio.pipeline import Pipeline
+    from vio.run import td_feedback
     from vio.sync import packets
     pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg)
-    for pkt in packets(data.imu, data.cam0.t_ns[:n], cfg.td_s, data.features[:n]):
+    # the sync layer's td feedback as run_dataset has it, so that the keyframe times match
+    for pkt in packets(data.imu, data.cam0.t_ns[:n], cfg.td_s, data.features[:n],
+                       td_source=td_feedback(pipe, cfg)):
         pipe.process(pkt)
     est = pipe.est
     fg = est.smoother.getFactors()
