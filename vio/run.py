@@ -342,8 +342,9 @@ def _loop(it: Iterator[FramePacket], stage: Callable | None, pipe, res: RunResul
             bar.update(1)
 
 
-def summary(res: RunResult, data: EurocDataset) -> list[str]:
-    """Human-readable summary lines (ATE when ground truth is present)."""
+def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None) -> list[str]:
+    """Human-readable summary lines (ATE when ground truth is present; with ``segments_s``
+    the ``vio eval --segments`` table of the online poses, or why there is none)."""
     lines = [f"frames          {res.frames_in} in, {len(res.outputs)} estimated, "
              f"{res.keyframes} keyframes, {res.recoveries} solver recoveries"
              + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else "")
@@ -382,17 +383,21 @@ def summary(res: RunResult, data: EurocDataset) -> list[str]:
         lines.append(f"extrinsic t_b_c {np.round(t, 4)} m"
                      + (f" (moved {moved[0]:.3f} deg / {moved[1]:.1f} mm from the calibration)"
                         if max(moved) > 1e-3 else ""))
+    if segments_s and (data.groundtruth is None or len(res.outputs) <= 3):
+        lines.append("segments        not evaluated: "
+                     + ("no ground truth" if data.groundtruth is None else f"{len(res.outputs)} pose(s)"))
     if data.groundtruth is not None and len(res.outputs) > 3:
-        from vio.evaluation import evaluate, overlap_problem
+        from vio.evaluation import evaluate, overlap_problem, segment_lines
         problem = overlap_problem(res.arrays()[0], data.groundtruth)
         if problem is not None:
             lines.append(f"ATE             not evaluated: {problem}")
         else:
-            e = evaluate(*res.arrays(), data.groundtruth)
+            e = evaluate(*res.arrays(), data.groundtruth, segments_s=segments_s)
             lines.append(f"ATE RMSE        {e.ate_rmse:.4f} m (SE3-aligned, {e.n_matched} poses, "
                          f"path {e.path_length:.1f} m)")
             if e.path_length >= MIN_SCALE_PATH_M:    # a still run's scale is noise
                 s = evaluate(*res.arrays(), data.groundtruth, sim3=True)
                 lines.append(f"ATE RMSE Sim3   {s.ate_rmse:.4f} m (the estimate's scale "
                              f"{s.scale_error_pct:+.1f} % against the ground truth)")
+            lines += segment_lines(e)
     return lines

@@ -59,20 +59,6 @@ def _check_outputs(args: argparse.Namespace) -> None:
         raise ValueError("--smooth needs --out (the raw track it smooths)")
 
 
-def _segments(res: RunResult, data, seconds: float | None) -> list[str]:
-    """``vio eval --segments``' table of the run's online poses (``--segments``), or the
-    line saying why there is none (no ground truth, no overlap, no pose)."""
-    if not seconds:
-        return []
-    if data.groundtruth is None or not res.outputs:
-        return ["segments        not evaluated: " + ("no ground truth" if data.groundtruth is None else "no pose")]
-    from vio.evaluation import evaluate, overlap_problem, segment_lines
-    problem = overlap_problem(res.arrays()[0], data.groundtruth)
-    if problem is not None:
-        return [f"segments        not evaluated: {problem}"]
-    return segment_lines(evaluate(*res.arrays(), data.groundtruth, segments_s=seconds))
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     """Entry point of ``vio run``."""
     _check_outputs(args)
@@ -117,9 +103,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.smooth is not None:
         from vio.nav.cli import smooth_file
         smooth_file(args.out, args.smooth)
-    for line in summary(res, data):
-        print(line)
-    for line in _segments(res, data, getattr(args, "segments", None)):
+    for line in summary(res, data, getattr(args, "segments", None)):
         print(line)
     if mode in PHOTOMETRIC_MODES and not cfg.direct.points.exposure_td:
         print("td note         the photometric term holds td at the sync layer's value (--td); to "
