@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vio.backend.config import TdSearchConfig
-from vio.backend.td_init import pair_residuals, search_td, shift_state
+from vio.backend.td_init import pair_residuals, refine_minimum, search_td, shift_state
 from vio.imu import ImuNoiseConfig, combined_params
 from vio.io.types import ImuCalib, ImuData
 
@@ -70,6 +70,32 @@ def test_parabola_refines_between_grid_points():
     res = search_td(imu, imu.t_ns[kf], _pairs(R, kf, 2, 0.2, seed=4), np.zeros(3),
                     TdSearchConfig(step_s=0.003, search_s=0.045))
     assert abs(res.best_s - 0.010) < 5e-4 and res.td_s == res.best_s
+
+
+@pytest.mark.parametrize("x0, truth", [(0.0203, 0.0252), (-0.029, -0.0245), (0.0, 0.0)])
+def test_refine_minimum_walks_to_the_parabola_vertex(x0, truth):
+    """The batch td walk (``refine_minimum``) on an exact parabola: the vertex to the
+    float, from a start a few steps away; the curvature and the drop as given."""
+    calls = []
+
+    def cost(x):
+        calls.append(x)
+        return 263.0 + 5e5 * (x - truth) ** 2
+
+    x, a, drop = refine_minimum(cost, x0, 0.005, 0.03)
+    n_calls = len(calls)
+    assert abs(x - truth) < 1e-9 and abs(a - 5e5) < 1e-3
+    assert abs(drop - (cost(x0) - cost(x0 + round((truth - x0) / 0.005) * 0.005))) < 1e-9
+    assert n_calls <= 3 + abs(round((truth - x0) / 0.005)) + 1
+
+
+def test_refine_minimum_stops_at_its_range_and_at_unevaluable_points():
+    """A minimum beyond the walk's range ends at the range with no curvature (not a
+    bracketed minimum); an inf neighbour (IMU not covering the shift) is never chosen."""
+    x, a, _ = refine_minimum(lambda x: (x - 0.1) ** 2, 0.0, 0.005, 0.02)
+    assert abs(x - 0.02) < 1e-12 and a == 0.0
+    x, a, drop = refine_minimum(lambda x: np.inf if x > 0.001 else (x - 0.01) ** 2, 0.0, 0.005, 0.03)
+    assert x == 0.0 and a == 0.0 and drop == 0.0
 
 
 def test_constant_rotation_leaves_the_offset_unobservable():

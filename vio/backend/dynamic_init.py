@@ -16,6 +16,9 @@ visual-inertial alignment, solved here without a separate SfM stage).
    ``|g0|`` stays free; its deviation from ``g`` is a consistency check.
 3. A batch Levenberg-Marquardt over the window (``CombinedImuFactor`` + landmark factors,
    inlier observations) refines poses, velocities, inverse depths and IMU biases.
+4. When the visual pair rotations see a camera-IMU offset (``vio.backend.td_init``), the
+   batch's cost against the offset pins it (``vio.backend.init_batch``) and the window is
+   aligned again there.
 
 Why not a linear solve: the earlier closed form (Martinelli-style, unknowns ``v0``,
 ``g0`` and metric depths ``d``) minimised ``[m_j]x R_cj^T (p_ca + R_ca m_a d - p_cj)``, an
@@ -42,15 +45,14 @@ zero yaw; the pipeline then replays the window through the estimator.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
 
-from factors.landmark import landmark_factor, make_track
-from factors.robust import RobustKernel
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.gyro_init import robust_gyro_bias, window_rotations
+from vio.backend.init_batch import add_landmarks, batch_td
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.td_init import search_td, shift_state
 from vio.imu import combined_params
@@ -60,8 +62,7 @@ from vio.backend.vi_align import (AlignProblem, ViSolution, WindowObs, chain_inc
                                   window_tracks)
 
 log = logging.getLogger(__name__)
-X, V, B, L = (gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B,
-              gtsam.symbol_shorthand.L)
+X, V, B = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B
 NAN = float("nan")
 
 
@@ -98,6 +99,7 @@ class AlignResult:
     gravity_disagreement_deg: float = NAN
     excitation: float = NAN
     scale_sigma: float = NAN
+    batch: tuple | None = field(default=None, repr=False, compare=False)   # (vi, obs, tracks, est, t_ns)
 
 
 def init_window(packets: list, step_s: float) -> InitWindow:
@@ -155,16 +157,7 @@ def _batch_refine(cam: CameraCalib, cfg: BackendConfig, pims: list, vi: ViSoluti
         vals.insert(B(k), gtsam.imuBias.ConstantBias(R[k].T @ (g_true - vi.g0), vi.bg))
         if k > 0:
             g.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pims[k - 1]))
-    sigma = cfg.vision.pixel_sigma / cam.intrinsics[0]
-    lo, hi = 1.0 / cfg.vision.max_depth_m, 1.0 / cfg.vision.min_depth_m
-    for li, lid in enumerate(obs.ids):
-        sel = (obs.lm == li) & vi.mask
-        if sel.sum() < 2 or not lo < vi.rho[li] < hi:
-            continue
-        a, uva = tracks[lid][0]
-        tr = make_track(X(a), uva, [X(int(j)) for j in obs.j[sel]], obs.uv[sel])
-        g.add(landmark_factor(tr, L(lid), E, sigma, cfg.vision.model, RobustKernel("huber")))
-        vals.insert(L(lid), np.array([vi.rho[li]]))
+    add_landmarks(g, vals, cam, cfg, vi, obs, tracks)
     params_lm = gtsam.LevenbergMarquardtParams()
     params_lm.setMaxIterations(30)
     est = gtsam.LevenbergMarquardtOptimizer(g, vals, params_lm).optimize()
@@ -245,12 +238,40 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     log.debug("td search: best %.1f ms, sigma %.1f ms, gain %.1f, %d of %d pairs", found.best_s * 1e3,
               found.sigma_s * 1e3, found.gain, found.n_inliers, found.n_pairs)
     if found.td_s != 0.0:
-        return _align_shifted(win, found.td_s, cam, cfg, params, rots)
-    res = _align(win, cam, cfg, params, pims, rots, bg, agree)
-    if res.ok or found.best_s == 0.0 or not found.gain >= dc.td.try_gain:
+        res = _align_shifted(win, found.td_s, cam, cfg, params, rots)
+    else:
+        res = _align(win, cam, cfg, params, pims, rots, bg, agree)
+        if not res.ok and found.best_s != 0.0 and found.gain >= dc.td.try_gain:
+            # a weaker candidate: the alignment's own checks decide
+            alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
+            res = alt if alt.ok else res
+    if found.best_s == 0.0 or not found.gain >= dc.td.try_gain:
+        return res                       # the rotations see no offset: nothing to refine
+    return _refine_td(win, res, found.best_s, cam, cfg, params, rots)
+
+
+def _refine_td(win: InitWindow, res: AlignResult, hint: float, cam: CameraCalib,
+               cfg: BackendConfig, params, rots: list) -> AlignResult:
+    """An accepted alignment re-aligned at the td remainder its batch prefers
+    (``vio.backend.init_batch.batch_td``, searched from ``hint``, the pair rotations'
+    candidate), when that is determined within
+    ``TdSearchConfig.max_sigma_s`` and differs from ``res``'s by more than its sigma and
+    ``batch_min_change_s``. Never raises: a failure keeps ``res``."""
+    tc = cfg.init.dynamic.td
+    if not res.ok or res.batch is None or tc.batch_step_s <= 0 or win.imu_all is None:
         return res
-    # a weaker candidate: the alignment's own checks decide
-    alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
+    td0 = res.state.td_s or 0.0
+    vi, obs, tracks, est, t_ns = res.batch
+    try:
+        td, sigma, drop = batch_td(cam, cfg, params, win.imu_all, t_ns, (vi, obs, tracks, est), td0, hint)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+        log.warning("td from the batch failed (%s): the window stays at %.1f ms", exc, td0 * 1e3)
+        return res
+    log.debug("td from the batch: %.2f ms (sigma %.2f ms, cost drop %.1f) after %.2f ms",
+              td * 1e3, sigma * 1e3, drop, td0 * 1e3)
+    if not sigma <= tc.max_sigma_s or abs(td - td0) < max(tc.batch_min_change_s, sigma):
+        return res
+    alt = _align_shifted(win, td, cam, cfg, params, rots)
     return alt if alt.ok else res
 
 
@@ -321,4 +342,4 @@ def _align(win: InitWindow, cam: CameraCalib, cfg: BackendConfig, params, pims: 
     log.info("dynamic initialization: |g| error %.1f%%, v0 %s (sigma %.3f m/s), gyro bias %s",
              100 * gerr, np.round(state.v_w, 3), diag["v0_sigma"],
              np.round(state.bias.gyroscope(), 4))
-    return AlignResult(True, state, "ok", **diag)
+    return AlignResult(True, state, "ok", batch=(vi, obs, tracks, est, win.t_ns), **diag)

@@ -18,7 +18,12 @@ class TdSearchConfig:
     ``min_pairs``: fewest keyframe pairs with IMU over the whole interval; ``min_gain``,
     ``max_sigma_s``: when a found remainder is applied; a weaker one (cost drop at least
     ``try_gain`` residual variances) is tried when the alignment without it is refused,
-    and kept if the alignment's checks pass."""
+    and kept if the alignment's checks pass. When the rotations see an offset (a
+    candidate with at least ``try_gain``), the accepted window is re-aligned at the
+    offset its visual-inertial batch prefers (``vio.backend.init_batch``): a walk of
+    ``batch_step_s`` steps from the candidate, up to ``batch_range_s`` (``batch_step_s``
+    0: off), applied when its sigma is within ``max_sigma_s`` and it moves the remainder by
+    more than that sigma and ``batch_min_change_s``."""
 
     search_s: float = 0.05
     step_s: float = 0.0025
@@ -27,6 +32,9 @@ class TdSearchConfig:
     min_gain: float = 25.0
     max_sigma_s: float = 0.003
     try_gain: float = 9.0
+    batch_step_s: float = 0.005
+    batch_range_s: float = 0.03
+    batch_min_change_s: float = 0.0005
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("step_s",))

@@ -32,12 +32,15 @@ runs, 26 decide within 1.5 s (15 without the search) and 23 stay under 0.2 % of 
 one gets worse (MH_04@40 +25 ms 0.135 -> 0.181 %). At the default 5 ms nothing changes
 (20 excerpts identical), nor on real MH_05 mono from 14 start frames. The visual pair
 rotations (essential matrices) put the remainder within ~2.5-10 ms of the truth (V1_02@30
-+25 ms: 27.5 ms); the online td estimate refines it.
++25 ms: 27.5 ms); the window's visual-inertial batch then pins it to ~1 ms
+(``vio.backend.init_batch``, with :func:`refine_minimum`), and the online td estimate
+refines it further.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import gtsam
 import numpy as np
@@ -196,6 +199,40 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
     sigma = float(np.sqrt(var / a))
     ok = gain >= cfg.min_gain and sigma <= cfg.max_sigma_s
     return TdSearch(best if ok else 0.0, best, sigma, float(gain), bg, n, int(inl.sum()))
+
+
+def refine_minimum(cost: Callable[[float], float], x0: float, step: float, max_shift: float
+                   ) -> tuple[float, float, float]:
+    """The minimum of a 1-D ``cost`` near ``x0``: the grid ``x0 + k step`` is walked from
+    ``k = -1, 0, 1`` towards lower cost while the lowest point is at an edge and within
+    ``max_shift`` of ``x0``, then a parabola through the lowest point and its neighbours
+    gives the sub-step value. Returns ``(x, a, drop)``: the minimum, the parabola's
+    curvature (``cost ~ c + a (x - x_min)^2``; 0 when the minimum is at an end of the
+    walk, x then the lowest grid point) and the cost drop against ``x0`` (>= 0).
+    ``cost`` may return inf (not evaluable): such points are never the minimum."""
+    pts = {k: cost(x0 + k * step) for k in (-1, 0, 1)}
+    kmax = int(round(max_shift / step))
+    while True:
+        k = min(pts, key=pts.get)
+        lo, hi = min(pts), max(pts)
+        if k == lo and k > -kmax and np.isfinite(pts[k]):
+            pts[k - 1] = cost(x0 + (k - 1) * step)
+        elif k == hi and k < kmax and np.isfinite(pts[k]):
+            pts[k + 1] = cost(x0 + (k + 1) * step)
+        else:
+            break
+    c1 = pts[k]
+    drop = float(pts[0] - c1) if np.isfinite(pts[0]) and np.isfinite(c1) else 0.0
+    if not np.isfinite(c1) or k - 1 not in pts or k + 1 not in pts:
+        return x0 + k * step, 0.0, drop
+    c0, c2 = pts[k - 1], pts[k + 1]
+    a = (c0 + c2 - 2.0 * c1) / (2.0 * step ** 2)
+    x = x0 + k * step
+    if np.isfinite(a) and a > 0:
+        x += float(np.clip(0.25 * (c0 - c2) / (a * step ** 2), -0.5, 0.5)) * step
+    else:
+        a = 0.0
+    return x, float(a), drop
 
 
 def shift_state(T_w_b, v_w: np.ndarray, bias, imu: ImuData, t_from_ns: int, t_to_ns: int, params):
