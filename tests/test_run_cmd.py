@@ -7,9 +7,9 @@ from types import SimpleNamespace
 from vio.run_cmd import TD_HINT_S, td_hint
 
 
-def _res(td_s: float, init: bool = True) -> SimpleNamespace:
-    return SimpleNamespace(init=object() if init else None, outputs=[SimpleNamespace(td_s=0.0),
-                                                                    SimpleNamespace(td_s=td_s)])
+def _res(td_s: float, init: bool = True, init_td_s: float = 0.0) -> SimpleNamespace:
+    return SimpleNamespace(init=SimpleNamespace(td_s=init_td_s) if init else None,
+                           outputs=[SimpleNamespace(td_s=0.0), SimpleNamespace(td_s=td_s)])
 
 
 def test_mono_suggests_rerunning_at_an_estimate_far_from_the_starting_offset():
@@ -18,6 +18,14 @@ def test_mono_suggests_rerunning_at_an_estimate_far_from_the_starting_offset():
     assert td_hint(_res(0.0217), 0.010, "mono").endswith("--td 0.0217")       # from a --td start too
     assert td_hint(_res(0.010 + 0.9 * TD_HINT_S), 0.010, "mono") is None      # within the limit
     assert td_hint(_res(-0.020), 0.0, "mono") is not None                      # either sign
+
+
+def test_no_td_note_when_the_initialization_aligned_at_the_estimate():
+    """A dynamic initialization that found the offset (its remainder in ``InitInfo.td_s``)
+    aligned its window there: the note measures from that offset."""
+    assert td_hint(_res(-0.0249, init_td_s=-0.0243), 0.0, "mono") is None
+    note = td_hint(_res(-0.0249, init_td_s=-0.018), 0.0, "mono")
+    assert note is not None and "-6.9 ms" in note
 
 
 def test_no_td_note_where_the_offset_does_not_cost_or_nothing_was_estimated():

@@ -41,8 +41,10 @@ class InitInfo:
     """How and when the estimator was initialized: ``method`` (stereo, static, dynamic),
     ``decided_s``: data seconds from the first frame to the decision (the latency
     before the first output), ``state_s``: from the first frame to the initial state
-    (the first frame with a pose)."""
+    (the first frame with a pose), ``td_s``: the camera-IMU offset remainder (s) a dynamic
+    initialization found and aligned its window at (0: the sync layer's offset)."""
 
     method: str
     decided_s: float
     state_s: float
+    td_s: float = 0.0

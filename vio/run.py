@@ -366,7 +366,8 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
                                            "in the live backend process (not reported)"))
     else:
         lines.append(f"initialization  {res.init.method} after {res.init.decided_s:.2f} s of data "
-                     f"(first pose at {res.init.state_s:.2f} s)")
+                     f"(first pose at {res.init.state_s:.2f} s)"
+                     + (f", aligned at a td remainder of {1e3 * res.init.td_s:+.1f} ms" if res.init.td_s else ""))
     if res.outputs:
         ms = res.frame_ms()
         ms = ms if ms.size else np.zeros(1)

@@ -21,16 +21,17 @@ TD_HINT_S = 0.003
 
 def td_hint(res: RunResult, td0_s: float, mode: str) -> str | None:
     """The summary's note when a monocular run's td estimate ends at least ``TD_HINT_S``
-    from the offset it started at (``td0_s``, s): mono's initialization aligned its first
-    seconds there, and the window keeps the scale it found; None otherwise."""
+    from the offset its initialization aligned its first seconds at (``td0_s``, s, the
+    sync layer's, plus the remainder a dynamic initialization found): the window keeps the
+    scale it found there; None otherwise."""
     if mode != "mono" or res.init is None or not res.outputs:
         return None
-    td = float(res.outputs[-1].td_s)
-    if not abs(td - td0_s) >= TD_HINT_S:
+    td, aligned = float(res.outputs[-1].td_s), td0_s + res.init.td_s
+    if not abs(td - aligned) >= TD_HINT_S:
         return None
-    return (f"td note         the estimate is {1e3 * (td - td0_s):+.1f} ms from the offset this run started at; "
-            f"mono's initialization aligned its first seconds at that offset and the window keeps the scale it "
-            f"found: for the best trajectory rerun with --td {td:.4f}")
+    return (f"td note         the estimate is {1e3 * (td - aligned):+.1f} ms from the offset this run's "
+            f"initialization aligned its first seconds at; the window keeps the scale it found there: for the "
+            f"best trajectory rerun with --td {td:.4f}")
 
 
 def _note_cold_kernels(mode: str) -> None:
