@@ -52,7 +52,7 @@ import numpy as np
 
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.gyro_init import robust_gyro_bias, window_rotations
-from vio.backend.init_batch import add_landmarks, batch_td
+from vio.backend.init_batch import add_landmarks, add_priors, batch_td
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.td_init import search_td, shift_state
 from vio.imu import combined_params
@@ -142,14 +142,8 @@ def _batch_refine(cam: CameraCalib, cfg: BackendConfig, pims: list, vi: ViSoluti
     Rw = R_w_b0.matrix()
     g_true = np.linalg.norm(gravity) * vi.g0 / np.linalg.norm(vi.g0)
     g, vals = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    ic = cfg.init
-    g.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(R_w_b0, np.zeros(3)), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([0.1, 0.1, 1e-3, 1e-3, 1e-3, 1e-3]))))
-    g.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.dynamic.gyro_bias_sigma)])))
-    E = gtsam.symbol_shorthand.E(0)
-    g.add(gtsam.PriorFactorPose3(E, cam.T_b_c, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
-    vals.insert(E, cam.T_b_c)
+    add_priors(g, cam, cfg, gtsam.Pose3(R_w_b0, np.zeros(3)), B(0))
+    vals.insert(gtsam.symbol_shorthand.E(0), cam.T_b_c)
     for k in range(len(t)):
         p = Rw @ (vi.v0 * t[k] + 0.5 * vi.g0 * t[k] ** 2 + dp[k])
         vals.insert(X(k), gtsam.Pose3(gtsam.Rot3(Rw @ R[k]), p))

@@ -36,6 +36,19 @@ X, V, B, L = (gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_s
 E = gtsam.symbol_shorthand.E(0)
 
 
+def add_priors(g: gtsam.NonlinearFactorGraph, cam: CameraCalib, cfg: BackendConfig, T0: gtsam.Pose3,
+               bias_key: int) -> None:
+    """The batch's gauge and calibration priors: ``X(0)`` at ``T0`` (roll and pitch 0.1
+    rad, yaw and position 1e-3), the IMU bias at ``bias_key`` about zero
+    (``prior_accel_bias_sigma``, the dynamic ``gyro_bias_sigma``), the extrinsic held."""
+    ic = cfg.init
+    g.add(gtsam.PriorFactorPose3(X(0), T0, gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([0.1, 0.1, 1e-3, 1e-3, 1e-3, 1e-3]))))
+    g.add(gtsam.PriorFactorConstantBias(bias_key, gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Diagonal.Sigmas(
+        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.dynamic.gyro_bias_sigma)])))
+    g.add(gtsam.PriorFactorPose3(E, cam.T_b_c, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+
+
 def add_landmarks(g: gtsam.NonlinearFactorGraph, vals: gtsam.Values | None, cam: CameraCalib,
                   cfg: BackendConfig, vi, obs, tracks: dict) -> None:
     """One landmark factor per track with at least two inlier observations (``vi.mask``)
@@ -66,13 +79,8 @@ def td_cost(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, t_ns, ba
     t = [int(t_ns[k]) + d for k in range(1, K - 1)]
     if K < 5 or t[0] < imu.t_ns[0] or t[-1] > imu.t_ns[-1]:
         return float("inf")
-    ic = cfg.init
     g = gtsam.NonlinearFactorGraph()
-    g.add(gtsam.PriorFactorPose3(X(0), est.atPose3(X(0)), gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([0.1, 0.1, 1e-3, 1e-3, 1e-3, 1e-3]))))
-    g.add(gtsam.PriorFactorConstantBias(B(1), gtsam.imuBias.ConstantBias(), gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, ic.prior_accel_bias_sigma), np.full(3, ic.dynamic.gyro_bias_sigma)])))
-    g.add(gtsam.PriorFactorPose3(E, cam.T_b_c, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    add_priors(g, cam, cfg, est.atPose3(X(0)), B(1))
     for k in range(2, K - 1):
         pim = gtsam.PreintegratedCombinedMeasurements(params, gtsam.imuBias.ConstantBias())
         integrate(pim, imu.segment(t[k - 2], t[k - 1]))
