@@ -76,8 +76,10 @@ def td_cost(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, t_ns, ba
     accepted alignment. inf when the IMU does not cover the shifted times or LM fails."""
     vi, obs, tracks, est = batch
     K, d = len(t_ns), int(round(shift_s * 1e9))
+    if K < 5:
+        return float("inf")
     t = [int(t_ns[k]) + d for k in range(1, K - 1)]
-    if K < 5 or t[0] < imu.t_ns[0] or t[-1] > imu.t_ns[-1]:
+    if t[0] < imu.t_ns[0] or t[-1] > imu.t_ns[-1]:
         return float("inf")
     g = gtsam.NonlinearFactorGraph()
     add_priors(g, cam, cfg, est.atPose3(X(0)), B(1))
@@ -88,8 +90,7 @@ def td_cost(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, t_ns, ba
     add_landmarks(g, None, cam, cfg, vi, obs, tracks)
     start = gtsam.Values()
     for key in g.keyVector():
-        if not start.exists(key):
-            _copy(start, est, key)
+        _copy(start, est, key)
     try:
         lm = gtsam.LevenbergMarquardtParams()
         lm.setMaxIterations(30)
