@@ -52,7 +52,7 @@ import numpy as np
 
 from vio.backend.config import BackendConfig, InitConfig
 from vio.backend.gyro_init import robust_gyro_bias, window_rotations
-from vio.backend.init_batch import add_landmarks, add_priors, batch_td
+from vio.backend.init_batch import WindowBatch, add_landmarks, add_priors, batch_td
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.td_init import search_td, shift_state
 from vio.imu import combined_params
@@ -99,7 +99,7 @@ class AlignResult:
     gravity_disagreement_deg: float = NAN
     excitation: float = NAN
     scale_sigma: float = NAN
-    batch: tuple | None = field(default=None, repr=False, compare=False)   # (vi, obs, tracks, est, t_ns)
+    batch: WindowBatch | None = field(default=None, repr=False, compare=False)
 
 
 def init_window(packets: list, step_s: float) -> InitWindow:
@@ -231,17 +231,16 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     found = search_td(win.imu_all, win.t_ns, rots, bg, dc.td)
     log.debug("td search: best %.1f ms, sigma %.1f ms, gain %.1f, %d of %d pairs", found.best_s * 1e3,
               found.sigma_s * 1e3, found.gain, found.n_inliers, found.n_pairs)
+    seen = found.best_s != 0.0 and found.gain >= dc.td.try_gain     # the rotations see an offset
     if found.td_s != 0.0:
         res = _align_shifted(win, found.td_s, cam, cfg, params, rots)
     else:
         res = _align(win, cam, cfg, params, pims, rots, bg, agree)
-        if not res.ok and found.best_s != 0.0 and found.gain >= dc.td.try_gain:
+        if not res.ok and seen:
             # a weaker candidate: the alignment's own checks decide
             alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
             res = alt if alt.ok else res
-    if found.best_s == 0.0 or not found.gain >= dc.td.try_gain:
-        return res                       # the rotations see no offset: nothing to refine
-    return _refine_td(win, res, found.best_s, cam, cfg, params, rots)
+    return _refine_td(win, res, found.best_s, cam, cfg, params, rots) if seen else res
 
 
 def _refine_td(win: InitWindow, res: AlignResult, hint: float, cam: CameraCalib,
@@ -255,9 +254,8 @@ def _refine_td(win: InitWindow, res: AlignResult, hint: float, cam: CameraCalib,
     if not res.ok or res.batch is None or tc.batch_step_s <= 0 or win.imu_all is None:
         return res
     td0 = res.state.td_s or 0.0
-    vi, obs, tracks, est, t_ns = res.batch
     try:
-        td, sigma, drop = batch_td(cam, cfg, params, win.imu_all, t_ns, (vi, obs, tracks, est), td0, hint)
+        td, sigma, drop = batch_td(cam, cfg, params, win.imu_all, res.batch, td0, hint)
     except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
         log.warning("td from the batch failed (%s): the window stays at %.1f ms", exc, td0 * 1e3)
         return res
@@ -336,4 +334,4 @@ def _align(win: InitWindow, cam: CameraCalib, cfg: BackendConfig, params, pims: 
     log.info("dynamic initialization: |g| error %.1f%%, v0 %s (sigma %.3f m/s), gyro bias %s",
              100 * gerr, np.round(state.v_w, 3), diag["v0_sigma"],
              np.round(state.bias.gyroscope(), 4))
-    return AlignResult(True, state, "ok", batch=(vi, obs, tracks, est, win.t_ns), **diag)
+    return AlignResult(True, state, "ok", batch=WindowBatch(vi, obs, tracks, est, win.t_ns), **diag)

@@ -21,6 +21,8 @@ compared on the same factors).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
@@ -34,6 +36,19 @@ from vio.io.types import CameraCalib, ImuData
 X, V, B, L = (gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.V, gtsam.symbol_shorthand.B,
               gtsam.symbol_shorthand.L)
 E = gtsam.symbol_shorthand.E(0)
+
+
+@dataclass(frozen=True)
+class WindowBatch:
+    """An accepted window's batch: the alignment ``vi`` (``vio.backend.vi_align.ViSolution``),
+    its observations ``obs`` (``WindowObs``) and ``tracks`` (``window_tracks``), the batch
+    solution ``est`` and the keyframe times ``t_ns`` (K,) in the IMU clock it was solved at."""
+
+    vi: object
+    obs: object
+    tracks: dict
+    est: gtsam.Values
+    t_ns: tuple
 
 
 def add_priors(g: gtsam.NonlinearFactorGraph, cam: CameraCalib, cfg: BackendConfig, T0: gtsam.Pose3,
@@ -68,50 +83,35 @@ def add_landmarks(g: gtsam.NonlinearFactorGraph, vals: gtsam.Values | None, cam:
             vals.insert(L(lid), np.array([vi.rho[li]]))
 
 
-def td_cost(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, t_ns, batch: tuple,
+def td_cost(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, batch: WindowBatch,
             shift_s: float) -> float:
     """The window batch's cost (GTSAM error at its optimum) with the inner keyframes'
-    IMU cut ``shift_s`` later (module docstring). ``t_ns`` (K,): the keyframe times in the
-    IMU clock the batch was solved at; ``batch``: ``(vi, obs, tracks, est)`` of the
-    accepted alignment. inf when the IMU does not cover the shifted times or LM fails."""
-    vi, obs, tracks, est = batch
-    K, d = len(t_ns), int(round(shift_s * 1e9))
+    IMU cut ``shift_s`` later than ``batch.t_ns`` (module docstring), re-solved from
+    ``batch.est`` (its values of keys this graph lacks stay as they are). inf when the IMU
+    does not cover the shifted times or LM fails."""
+    K, d = len(batch.t_ns), int(round(shift_s * 1e9))
     if K < 5:
         return float("inf")
-    t = [int(t_ns[k]) + d for k in range(1, K - 1)]
+    t = [int(batch.t_ns[k]) + d for k in range(1, K - 1)]
     if t[0] < imu.t_ns[0] or t[-1] > imu.t_ns[-1]:
         return float("inf")
     g = gtsam.NonlinearFactorGraph()
-    add_priors(g, cam, cfg, est.atPose3(X(0)), B(1))
+    add_priors(g, cam, cfg, batch.est.atPose3(X(0)), B(1))
     for k in range(2, K - 1):
         pim = gtsam.PreintegratedCombinedMeasurements(params, gtsam.imuBias.ConstantBias())
         integrate(pim, imu.segment(t[k - 2], t[k - 1]))
         g.add(gtsam.CombinedImuFactor(X(k - 1), V(k - 1), X(k), V(k), B(k - 1), B(k), pim))
-    add_landmarks(g, None, cam, cfg, vi, obs, tracks)
-    start = gtsam.Values()
-    for key in g.keyVector():
-        _copy(start, est, key)
+    add_landmarks(g, None, cam, cfg, batch.vi, batch.obs, batch.tracks)
     try:
         lm = gtsam.LevenbergMarquardtParams()
         lm.setMaxIterations(30)
-        sol = gtsam.LevenbergMarquardtOptimizer(g, start, lm).optimize()
+        sol = gtsam.LevenbergMarquardtOptimizer(g, batch.est, lm).optimize()
     except RuntimeError:
         return float("inf")
     return float(g.error(sol))
 
 
-def _copy(dst: gtsam.Values, src: gtsam.Values, key: int) -> None:
-    """``dst[key] = src[key]`` for the value types of the batch."""
-    ch = gtsam.Symbol(key).chr()
-    if ch in (ord("x"), ord("e")):
-        dst.insert(key, src.atPose3(key))
-    elif ch == ord("b"):
-        dst.insert(key, src.atConstantBias(key))
-    else:
-        dst.insert(key, src.atVector(key))
-
-
-def batch_td(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, t_ns, batch: tuple,
+def batch_td(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, batch: WindowBatch,
              td0: float, center: float) -> tuple[float, float, float]:
     """The td that minimises :func:`td_cost`, walking ``TdSearchConfig.batch_step_s`` from
     ``center`` up to ``batch_range_s`` (``td_init.refine_minimum``); the batch was solved
@@ -119,6 +119,6 @@ def batch_td(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, t_ns, b
     cost is a negative log-likelihood; inf when the minimum is not bracketed) and the cost
     drop against ``center``."""
     tc = cfg.init.dynamic.td
-    td, a, drop = refine_minimum(lambda x: td_cost(cam, cfg, params, imu, t_ns, batch, x - td0),
+    td, a, drop = refine_minimum(lambda x: td_cost(cam, cfg, params, imu, batch, x - td0),
                                  center, tc.batch_step_s, tc.batch_range_s)
     return td, (1.0 / np.sqrt(2.0 * a) if a > 0 else float("inf")), drop
