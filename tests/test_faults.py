@@ -383,7 +383,8 @@ def test_a_dropped_packet_carries_its_imu_to_the_next_frame(tmp_path, caplog):
         outs = run(pkts)
     assert "frame dropped (an image that does not decode)" in caplog.text
     assert pipes[-1].frames_dropped == 1
-    from vio.run import RunResult, summary
+    from vio.run import RunResult
+    from vio.run_summary import summary
     faults = [ln for ln in summary(RunResult(frames_dropped=1), data) if ln.startswith("faults")]
     assert faults and faults[0].endswith("1 frame(s) dropped (image missing or unreadable)"), faults
     assert pkts[drop].t_ns not in {o.t_ns for o in outs} and pkts[drop + 1].t_ns in {o.t_ns for o in outs}

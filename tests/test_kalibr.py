@@ -16,7 +16,8 @@ from vio.io.euroc import load_euroc
 from vio.io.kalibr import read_camchain, read_kalibr_imu, write_camchain, write_kalibr_imu
 from vio.io.load import load_dataset, load_groundtruth
 from vio.io.types import GroundTruth
-from vio.run import run_dataset, summary
+from vio.run import run_dataset
+from vio.run_summary import summary
 from vio.trajectory import write_tum
 
 

@@ -55,5 +55,5 @@ def test_three_second_gap_over_the_take_off_is_realigned(tmp_path, caplog):
     m = re.search(r"gravity re-aligned after the IMU gap .* world tilted by ([0-9.]+) deg", caplog.text)
     assert m and float(m.group(1)) > 4.0, caplog.text[-2000:]
     assert res.restarts == 0 and res.realigns == 1 and ate <= 0.15, ate
-    from vio.run import summary
+    from vio.run_summary import summary
     assert "1 gravity re-alignment(s)" in "\n".join(summary(res, data))

@@ -150,7 +150,7 @@ def test_constant_velocity_motion_option():
 
 
 def _check_from_first_frame(data, bound: float) -> float:
-    from vio.run import summary
+    from vio.run_summary import summary
     res = run_dataset(data, PipelineConfig(), mode="stereo")
     assert any(line.startswith("initialization  stereo after 0.50 s") for line in summary(res, data))
     assert res.init is not None and res.init.method == "stereo"

@@ -8,7 +8,8 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from vio.run import PHOTOMETRIC_MODES, STEREO_MODES, RunResult, load_config, resolve_mode, run_dataset, summary
+from vio.run import PHOTOMETRIC_MODES, STEREO_MODES, RunResult, load_config, resolve_mode, run_dataset
+from vio.run_summary import summary
 from vio.trajectory import write_tum
 
 # |td estimate - the run's starting offset| (s) from which a mono run suggests rerunning at
