@@ -251,7 +251,7 @@ def _refine_td(win: InitWindow, res: AlignResult, hint: float, cam: CameraCalib,
     ``TdSearchConfig.max_sigma_s`` and differs from ``res``'s by more than its sigma and
     ``batch_min_change_s``. Never raises: a failure keeps ``res``."""
     tc = cfg.init.dynamic.td
-    if not res.ok or res.batch is None or tc.batch_step_s <= 0 or win.imu_all is None:
+    if not res.ok or tc.batch_step_s <= 0:     # align() searched only with imu_all; ok carries a batch
         return res
     td0 = res.state.td_s or 0.0
     try:
