@@ -384,7 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-frames", type=int)
     ap.add_argument("--schedule", type=Path, help="schedule JSON (default: run our pipeline first)")
     args = ap.parse_args(argv)
-    from vio.run import summary
+    from vio.run_summary import summary
     data, cfg = load_euroc(args.dataset), PipelineConfig()
     if args.schedule:
         sched = Schedule.from_json(json.loads(args.schedule.read_text()))

@@ -335,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mode", default="stereo", choices=("stereo", "mono"))
     ap.add_argument("--max-frames", type=int)
     args = ap.parse_args(argv)
-    from vio.run import summary
+    from vio.run_summary import summary
     data, cfg = load_euroc(args.dataset), default_config(args.mode)
     rec = record_run(data, cfg, args.mode, args.max_frames)
     print(f"ours ({args.mode}):\n  " + "\n  ".join(summary(rec.result, data)))

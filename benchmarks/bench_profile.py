@@ -95,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="TUM trajectory")
     a = ap.parse_args(argv)
     from vio.io.euroc import LoadOptions, load_euroc
-    from vio.run import load_config, resolve_mode, run_dataset, summary
+    from vio.run import load_config, resolve_mode, run_dataset
+    from vio.run_summary import summary
     from vio.trajectory import write_tum
 
     data = load_euroc(a.dataset, LoadOptions())

@@ -182,7 +182,7 @@ def test_world_points_calibrate_a_wrong_extrinsic_online(mh04_12s):
           f"{1e3 * np.linalg.norm(got.translation() - true.translation()):.1f} mm")
     assert rot_deg(got) < rot_deg(wrong) / 3
     assert np.linalg.norm(got.translation() - true.translation()) < 0.02
-    from vio.run import summary          # the summary says how far it moved from the calibration
+    from vio.run_summary import summary  # the summary says how far it moved from the calibration
     moved = np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(wrong.rotation().between(got.rotation()))))
     assert any(ln.startswith("extrinsic t_b_c") and f"(moved {moved:.3f} deg" in ln for ln in summary(res, bad))
     e = evaluate(*res.arrays(), d.groundtruth)
