@@ -92,6 +92,8 @@ def test_accelerating_window_is_aligned_with_gyro_bias_and_outliers():
     assert dg < 0.5           # measured 0.26 (accel bias 0.05 m/s^2 ~ 0.3 deg of tilt)
     assert dbg < 0.005        # true gyro bias 0.05 rad/s; measured 0.0012
     assert 0.9 < res.inlier_ratio < 0.995   # the injected outliers were found
+    # the window batch's scale uncertainty travels with the state (the run summary prints it)
+    assert res.state.scale_sigma == res.scale_sigma and 0.0 < res.scale_sigma < 0.2
 
 
 @pytest.mark.parametrize("seed", range(3))

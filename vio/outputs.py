@@ -42,9 +42,13 @@ class InitInfo:
     ``decided_s``: data seconds from the first frame to the decision (the latency
     before the first output), ``state_s``: from the first frame to the initial state
     (the first frame with a pose), ``td_s``: the camera-IMU offset remainder (s) a dynamic
-    initialization found and aligned its window at (0: the sync layer's offset)."""
+    initialization found and aligned its window at (0: the sync layer's offset);
+    ``scale_sigma``: the relative standard deviation of the metric scale a dynamic
+    (monocular) initialization gave its window (None: a stereo baseline or a still start
+    fixes the scale)."""
 
     method: str
     decided_s: float
     state_s: float
     td_s: float = 0.0
+    scale_sigma: float | None = None

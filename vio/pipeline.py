@@ -319,7 +319,7 @@ class Pipeline:
         self.n_keyframes = 1
         t_first = self._t_first if self._t_first is not None else pkt.t_ns
         self.init_info = InitInfo(state.method, (now.t_ns - t_first) * 1e-9, (pkt.t_ns - t_first) * 1e-9,
-                                  state.td_s or 0.0)
+                                  state.td_s or 0.0, state.scale_sigma)
         log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,
                  np.round(state.bias.gyroscope(), 4))
         return True

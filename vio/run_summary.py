@@ -39,7 +39,9 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
     else:
         lines.append(f"initialization  {res.init.method} after {res.init.decided_s:.2f} s of data "
                      f"(first pose at {res.init.state_s:.2f} s)"
-                     + (f", aligned at a td remainder of {1e3 * res.init.td_s:+.1f} ms" if res.init.td_s else ""))
+                     + (f", aligned at a td remainder of {1e3 * res.init.td_s:+.1f} ms" if res.init.td_s else "")
+                     + (f", the window's metric scale +-{100 * res.init.scale_sigma:.1f} % (1 sigma)"
+                        if res.init.scale_sigma is not None else ""))
     if res.outputs:
         ms = res.frame_ms()
         ms = ms if ms.size else np.zeros(1)

@@ -330,7 +330,8 @@ def _align(win: InitWindow, cam: CameraCalib, cfg: BackendConfig, params, pims: 
     vel = max(ic.prior_vel_sigma, dv, diag["v0_sigma"])
     state = InitialState(win.t_ns[0], est.atPose3(X(0)), est.atVector(V(0)),
                          est.atConstantBias(B(0)), "dynamic",
-                         rp if rp > ic.prior_rp_sigma else None, vel if vel > ic.prior_vel_sigma else None)
+                         rp if rp > ic.prior_rp_sigma else None, vel if vel > ic.prior_vel_sigma else None,
+                         scale_sigma=diag["scale_sigma"] if np.isfinite(diag["scale_sigma"]) else None)
     log.info("dynamic initialization: |g| error %.1f%%, v0 %s (sigma %.3f m/s), gyro bias %s",
              100 * gerr, np.round(state.v_w, 3), diag["v0_sigma"],
              np.round(state.bias.gyroscope(), 4))

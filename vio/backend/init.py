@@ -24,7 +24,9 @@ class InitialState:
     ``v_w`` m/s, IMU bias, and how it was found. ``rp_sigma`` (rad) / ``vel_sigma``
     (m/s): the initializer's own roll-pitch / velocity prior sigmas (None: the
     ``InitConfig`` defaults); ``td_s``: the camera-IMU offset beyond the sync layer's that
-    the initializer found (s; None: none, the estimator's own prior mean)."""
+    the initializer found (s; None: none, the estimator's own prior mean); ``scale_sigma``:
+    the relative standard deviation of the window's metric scale (a dynamic
+    initialization's batch, ``vio.backend.dynamic_init.scale_sigma``; None otherwise)."""
 
     t_ns: int
     T_w_b: gtsam.Pose3
@@ -34,6 +36,7 @@ class InitialState:
     rp_sigma: float | None = None
     vel_sigma: float | None = None
     td_s: float | None = None
+    scale_sigma: float | None = None
 
 
 @dataclass(frozen=True)
