@@ -33,15 +33,7 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
              + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
              + (f", {res.reiterations} update(s) iterated again" if res.reiterations else "")]
-    if res.init is None:
-        lines.append("initialization  " + (f"not reached ({res.init_wait or 'no attempt'})" if not res.outputs else
-                                           "in the live backend process (not reported)"))
-    else:
-        lines.append(f"initialization  {res.init.method} after {res.init.decided_s:.2f} s of data "
-                     f"(first pose at {res.init.state_s:.2f} s)"
-                     + (f", aligned at a td remainder of {1e3 * res.init.td_s:+.1f} ms" if res.init.td_s else "")
-                     + (f", the window's metric scale +-{100 * res.init.scale_sigma:.1f} % (1 sigma)"
-                        if res.init.scale_sigma is not None else ""))
+    lines.append(_init_line(res))
     if res.outputs:
         ms = res.frame_ms()
         ms = ms if ms.size else np.zeros(1)
@@ -76,3 +68,15 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
                              f"{s.scale_error_pct:+.1f} % against the ground truth)")
             lines += segment_lines(e)
     return lines
+
+
+def _init_line(res: RunResult) -> str:
+    """How and when the run initialized (or why it did not)."""
+    if res.init is None:
+        return "initialization  " + (f"not reached ({res.init_wait or 'no attempt'})" if not res.outputs else
+                                     "in the live backend process (not reported)")
+    return (f"initialization  {res.init.method} after {res.init.decided_s:.2f} s of data "
+            f"(first pose at {res.init.state_s:.2f} s)"
+            + (f", aligned at a td remainder of {1e3 * res.init.td_s:+.1f} ms" if res.init.td_s else "")
+            + (f", the window's metric scale +-{100 * res.init.scale_sigma:.1f} % (1 sigma)"
+               if res.init.scale_sigma is not None else ""))
