@@ -10,8 +10,8 @@ is made whose camera lists begin at S (images, IMU and ground truth are symlinks
 the cameras' ``data.csv`` is rewritten), and each mode runs on it from its first frame
 with the mode's defaults, in this process. Printed per stretch and mode: ATE (mm,
 SE3-aligned), poses / frames, the initialization (method, decision time, first pose, data
-seconds after the first frame), the backend's frame time after initialization
-(p95 / max, ms; contended when other work runs), the Sim3-aligned ATE and the estimate's
+seconds after the first frame; a monocular start's scale sigma, ``InitInfo.scale_sigma``),
+the backend's frame time after initialization (p95 / max, ms; contended when other work runs), the Sim3-aligned ATE and the estimate's
 scale against the ground truth (%, negative: the trajectory is short). The last lines count, over the
 stretches, how often hybrid is at or below stereo and give each mode's ATE range.
 Measured at ff89549 (starts 10, 20, ..., 220 of real MH_01; every stretch initialized by
@@ -79,7 +79,8 @@ def run(folder: Path, mode: str, config: Path | None = None) -> dict:
     return dict(ate_mm=1e3 * e.ate_rmse, sim3_mm=1e3 * s.ate_rmse, scale_pct=s.scale_error_pct,
                 path_m=e.path_length, restarts=res.restarts, bridged=res.imu_contradicted,
                 poses=len(t), frames=res.frames_in,
-                init=f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s" if init else "never",
+                init=(f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s"
+                      + (f" +-{100 * init.scale_sigma:.0f}%" if init.scale_sigma is not None else "")) if init else "never",
                 init_s=f"{init.decided_s:.2f}/{init.state_s:.2f}" if init else "never",
                 p95=float(np.percentile(ms, 95)) if ms.size else float("nan"),
                 max=float(ms.max()) if ms.size else float("nan"))
