@@ -23,7 +23,8 @@ class TdSearchConfig:
     offset its visual-inertial batch prefers (``vio.backend.init_batch``): a walk of
     ``batch_step_s`` steps from the candidate, up to ``batch_range_s`` (``batch_step_s``
     0: off), applied when its sigma is within ``max_sigma_s`` and it moves the remainder by
-    more than that sigma and ``batch_min_change_s``."""
+    more than that sigma and ``batch_min_change_s``. When they see none, a window refused
+    because its batch and alignment disagree gets the same walk from 0 before waiting."""
 
     search_s: float = 0.05
     step_s: float = 0.0025
