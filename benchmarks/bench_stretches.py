@@ -11,8 +11,8 @@ the cameras' ``data.csv`` is rewritten), and each mode runs on it from its first
 with the mode's defaults, in this process. Printed per stretch and mode: ATE (mm,
 SE3-aligned), poses / frames, the initialization (method, decision time, first pose, data
 seconds after the first frame; a monocular start's scale sigma, ``InitInfo.scale_sigma``),
-the backend's frame time after initialization (p95 / max, ms; contended when other work runs), the Sim3-aligned ATE and the estimate's
-scale against the ground truth (%, negative: the trajectory is short). The last lines count, over the
+the backend's frame time after initialization (p95 / max, ms; contended when other work
+runs), the Sim3-aligned ATE and the estimate's scale against the ground truth (%, negative: the trajectory is short). The last lines count, over the
 stretches, how often hybrid is at or below stereo and give each mode's ATE range.
 Measured at ff89549 (starts 10, 20, ..., 220 of real MH_01; every stretch initialized by
 stereo after 0.5 s with a pose from its first frame): direct 5.1-6.0 mm, hybrid 4.5-5.4 mm,
@@ -44,7 +44,7 @@ DATA = ROOT.parent / "shared" / "data" / "euroc_MH_01_stereo_synimu"
 def stretch(src: Path, start: int, out: Path, step: int = 1) -> Path:
     """A copy of the EuRoC folder ``src`` whose camera lists begin at frame ``start`` and
     keep every ``step``-th frame from there (a lower frame rate on the same images, IMU
-    and ground truth)."""
+    and ground truth); a camera's ``features.csv`` keeps the observations of those frames."""
     if out.exists():
         shutil.rmtree(out)
     mav = out / "mav0"
@@ -65,6 +65,12 @@ def stretch(src: Path, start: int, out: Path, step: int = 1) -> Path:
             raise SystemExit(f"{entry / 'data.csv'}: {len(rows)} frames, no stretch from frame {start}"
                              f" every {step}")
         (cam / "data.csv").write_text("\n".join(header + rows[start::step]) + "\n")
+        feats = entry / "features.csv"
+        if feats.exists():    # a feature-track dataset: its observations at the kept frames
+            kept = {ln.split(",", 1)[0] for ln in rows[start::step]}
+            (cam / "features.csv").write_text("\n".join(
+                ln for ln in feats.read_text().splitlines()
+                if not ln[:1].isdigit() or ln.split(",", 1)[0] in kept) + "\n")
     return out
 
 
@@ -76,11 +82,11 @@ def run(folder: Path, mode: str, config: Path | None = None) -> dict:
     s = evaluate(t, p, q, data.groundtruth, sim3=True)
     ms = res.frame_ms()
     init = res.init
+    scale = f" +-{100 * init.scale_sigma:.0f}%" if init and init.scale_sigma is not None else ""
     return dict(ate_mm=1e3 * e.ate_rmse, sim3_mm=1e3 * s.ate_rmse, scale_pct=s.scale_error_pct,
                 path_m=e.path_length, restarts=res.restarts, bridged=res.imu_contradicted,
                 poses=len(t), frames=res.frames_in,
-                init=(f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s"
-                      + (f" +-{100 * init.scale_sigma:.0f}%" if init.scale_sigma is not None else "")) if init else "never",
+                init=f"{init.method} {init.decided_s:.2f}/{init.state_s:.2f} s{scale}" if init else "never",
                 init_s=f"{init.decided_s:.2f}/{init.state_s:.2f}" if init else "never",
                 p95=float(np.percentile(ms, 95)) if ms.size else float("nan"),
                 max=float(ms.max()) if ms.size else float("nan"))

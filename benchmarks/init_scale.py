@@ -4,15 +4,15 @@ each run only through its initialization window and a little after.
     python benchmarks/init_scale.py [DATA] [--starts 0,20,...] [--mode mono] [--seconds 3.5]
                                     [--config overrides.yaml]
 
-For each start frame S a stretch of ``DATA`` beginning at S (``bench_stretches.stretch``;
-a features dataset's ``features.csv`` is cut to it as well) runs for ``--seconds`` of
-frames. Printed per start: the initialization (method, decision time), the relative scale
-sigma it reported (``InitInfo.scale_sigma``: the window batch's marginal covariance; a
-stereo or still start has none), the speed of the first output frame against the ground
-truth's at that stamp (ratio - 1, %), and the scale of the output poses over the
-initialization window (Sim3 of the frames up to the decision against the ground truth,
-%; below 0.3 m of path: not given). The last line gives the RMS of both errors and of
-their ratios to the reported sigma. Ground truth is needed; asserts nothing.
+For each start frame S a stretch of ``DATA`` beginning at S (``bench_stretches.stretch``,
+images or feature tracks) runs for ``--seconds`` of frames. Printed per start: the
+initialization (method, decision time), the relative scale sigma it reported
+(``InitInfo.scale_sigma``: the window batch's marginal covariance; a stereo or still start
+has none), the speed of the first output frame against the ground truth's at that stamp
+(ratio - 1, %), and the scale of the output poses over the initialization window (Sim3 of
+the frames up to the decision against the ground truth, %; below 0.3 m of path: not
+given). The last line gives the RMS of both errors and of their ratios to the reported
+sigma. Ground truth is needed; asserts nothing.
 """
 
 from __future__ import annotations
@@ -39,20 +39,6 @@ from vio.run import load_config, run_dataset  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "euroc_MH_05_mono_15s"
 MIN_WINDOW_PATH_M = 0.3
-
-
-def cut_features(src: Path, folder: Path) -> None:
-    """Give a stretch of a features dataset its ``features.csv`` rows from its first frame on."""
-    for cam in ("cam0", "cam1"):
-        path = src / "mav0" / cam / "features.csv"
-        if not path.exists():
-            continue
-        rows = [ln for ln in (folder / "mav0" / cam / "data.csv").read_text().splitlines()
-                if ln.strip() and not ln.startswith("#")]
-        t0 = int(rows[0].split(",")[0])
-        keep = [ln for ln in path.read_text().splitlines()
-                if ln.strip() and (not ln[0].isdigit() or int(ln.split(",")[0]) >= t0)]
-        (folder / "mav0" / cam / "features.csv").write_text("\n".join(keep) + "\n")
 
 
 def start_errors(folder: Path, mode: str, seconds: float, config: Path | None) -> dict:
@@ -92,7 +78,6 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="vio_init_scale_") as tmp:
         for s in (int(x) for x in a.starts.split(",")):
             folder = stretch(a.data, s, Path(tmp) / f"from_{s}")
-            cut_features(a.data, folder)
             r = start_errors(folder, a.mode, a.seconds, a.config)
             rows.append(r)
             print(f"{s:5d} {r['init']:18s} {100 * r['sigma']:13.1f} {100 * r['speed']:+8.1f} "

@@ -386,6 +386,11 @@ def test_stretch_copy_starts_the_cameras_at_the_frame(tmp_path):
     every3 = load_euroc(stretch(src, 1, tmp_path / "s1x3", step=3))      # 6.7 Hz from frame 1
     assert np.array_equal(every3.cam0.t_ns, full.cam0.t_ns[1::3])
     assert np.array_equal(every3.cam1.t_ns, full.cam1.t_ns[1::3])
+    feats = shared("euroc_V1_01_30s_features")     # a feature-track dataset: its tracks cut too
+    whole, cut = load_euroc(feats), load_euroc(stretch(feats, 40, tmp_path / "f40", step=2))
+    assert np.array_equal(cut.cam0.t_ns, whole.cam0.t_ns[40::2])
+    assert [f.t_ns for f in cut.features] == [f.t_ns for f in whole.features[40::2]]
+    assert all(np.array_equal(a.ids, b.ids) for a, b in zip(cut.features, whole.features[40::2]))
 
 
 def test_imu_gt_consistency_is_one_on_consistent_motion_and_sees_a_scaled_imu():
