@@ -240,28 +240,28 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
             # a weaker candidate: the alignment's own checks decide
             alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
             res = alt if alt.ok else res
-    if seen:   # an accepted window only: a refused one's batch may be at either offset
-        return _refine_td(win, res, found.best_s, res.state.td_s or 0.0, cam, cfg, params, rots
-                          ) if res.ok else res
+    if seen:   # an accepted window only
+        return _refine_td(win, res, found.best_s, cam, cfg, params, rots) if res.ok else res
     if not res.ok and res.batch is not None:
-        # refused for a disagreement of its batch and alignment (solved at 0), which an
-        # offset the pair rotations miss gives (generated V2_03 from 26 s, seed 65, true
-        # remainder 5 ms: 4.9 degrees at 1.5 s; at the true offset the window is accepted)
-        return _refine_td(win, res, 0.0, 0.0, cam, cfg, params, rots)
+        # refused for a disagreement of its batch and alignment, which an offset the pair
+        # rotations miss gives (generated V2_03 from 26 s, seed 65, true remainder 5 ms:
+        # 4.9 degrees at 1.5 s; at the true offset the window is accepted)
+        return _refine_td(win, res, 0.0, cam, cfg, params, rots)
     return res
 
 
-def _refine_td(win: InitWindow, res: AlignResult, hint: float, td0: float, cam: CameraCalib,
+def _refine_td(win: InitWindow, res: AlignResult, hint: float, cam: CameraCalib,
                cfg: BackendConfig, params, rots: list) -> AlignResult:
     """An alignment re-aligned at the td remainder its batch prefers
     (``vio.backend.init_batch.batch_td``, searched from ``hint``, the pair rotations'
     candidate), when that is determined within
     ``TdSearchConfig.max_sigma_s`` and differs from ``res``'s by more than its sigma and
-    ``batch_min_change_s``: an accepted one, or one refused with its batch; ``td0`` the
-    remainder its batch was solved at. Never raises: a failure keeps ``res``."""
+    ``batch_min_change_s``: an accepted one, or one refused with its batch (searched from
+    the remainder that batch was solved at). Never raises: a failure keeps ``res``."""
     tc = cfg.init.dynamic.td
     if res.batch is None or tc.batch_step_s <= 0:    # align() searched only with imu_all
         return res
+    td0 = res.batch.td_s
     try:
         td, sigma, drop = batch_td(cam, cfg, params, win.imu_all, res.batch, td0, hint)
     except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
@@ -285,6 +285,8 @@ def _align_shifted(win: InitWindow, td_s: float, cam: CameraCalib, cfg: BackendC
     pims = preintegrate_window(moved, params)
     bg, agree = robust_gyro_bias(pims, rots, 3.0 * cfg.init.dynamic.gyro_bias_sigma)
     res = _align(moved, cam, cfg, params, pims, rots, bg, agree)
+    if res.batch is not None:
+        res = replace(res, batch=replace(res.batch, td_s=td_s))
     if not res.ok:
         return replace(res, reason=f"{res.reason} (at a td remainder of {td_s * 1e3:.1f} ms)")
     st = res.state

@@ -40,15 +40,17 @@ E = gtsam.symbol_shorthand.E(0)
 
 @dataclass(frozen=True)
 class WindowBatch:
-    """An accepted window's batch: the alignment ``vi`` (``vio.backend.vi_align.ViSolution``),
-    its observations ``obs`` (``WindowObs``) and ``tracks`` (``window_tracks``), the batch
-    solution ``est`` and the keyframe times ``t_ns`` (K,) in the IMU clock it was solved at."""
+    """A window's batch: the alignment ``vi`` (``vio.backend.vi_align.ViSolution``), its
+    observations ``obs`` (``WindowObs``) and ``tracks`` (``window_tracks``), the batch
+    solution ``est``, the keyframe times ``t_ns`` (K,) in the IMU clock it was solved at,
+    and ``td_s``: the td remainder (s) those times are shifted by from the packets'."""
 
     vi: object
     obs: object
     tracks: dict
     est: gtsam.Values
     t_ns: tuple
+    td_s: float = 0.0
 
 
 def add_priors(g: gtsam.NonlinearFactorGraph, cam: CameraCalib, cfg: BackendConfig, T0: gtsam.Pose3,
