@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from cases_photometric import CASES, PlaneSampler, box_scene, random_pose, render_planes
+from cases_photometric import (CASES, PlaneSampler, analytic_image, box_scene, random_pose,
+                               render_planes)
 from conftest import shared
 from factors.image_ops import BilinearImage
 from factors.photometric import (Pinhole, PhotometricParams, make_host_patch, stereo_eval,
@@ -65,6 +66,17 @@ def test_photometric_residual_zero_at_truth():
     host_l = make_host_patch(PlaneSampler(planes, KS, T_w_ci, W, H, gain_i, 0.0), uv, KS)
     ev_s = stereo_eval(rho, ab_r, host_l, right, KS, T_r_l)
     assert ev_s.valid.mean() > 0.9 and np.abs(ev_s.r[ev_s.valid]).max() < 1e-9
+
+
+def test_analytic_image_render_is_the_pointwise_field():
+    """``AnalyticImage.render`` (separable, two matrix products) equals the texture sampled
+    pixel by pixel, to rounding."""
+    img = analytic_image(np.random.default_rng(11))
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    pointwise = img.texture(uu, vv)[0]
+    assert img.render().shape == (H, W)
+    assert np.abs(img.render() - pointwise).max() < 1e-9 * np.abs(pointwise).max()
+    assert pointwise.std() > 5.0           # a textured image, not a constant
 
 
 def test_photometric_out_of_image_rows_are_zero_and_huber_reweights():
