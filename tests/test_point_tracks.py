@@ -32,22 +32,50 @@ def _cfg(reanchor: str):
     return dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, vision=vision))
 
 
-def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s):
+def _keep_pipeline(mp: pytest.MonkeyPatch, seen: dict) -> None:
+    """Keep the run's pipeline in ``seen["pipe"]`` to inspect its estimator afterwards."""
     from vio.pipeline import Pipeline
-    d = mh04_12s
-    seen: dict = {}
     orig = Pipeline.__init__
 
-    def spy(self, *a, **k):          # keep the pipeline to inspect its estimator afterwards
+    def keep(self, *a, **k):
         orig(self, *a, **k)
         seen["pipe"] = self
 
-    Pipeline.__init__ = spy
-    try:
-        res = run_dataset(d, _cfg("point"), mode="features")
-    finally:
-        Pipeline.__init__ = orig
-    est = seen["pipe"].est
+    mp.setattr(Pipeline, "__init__", keep)
+
+
+@pytest.fixture(scope="module")
+def point_run(mh04_12s):
+    """One world-point run on the excerpt, watched: its estimator (``seen["pipe"]``), the
+    farewells taken from the prefetch (``early``), and the outlier check's trimmed and
+    dropped observations and the points retired after a trim (``retired``)."""
+    from vio.backend.point_tracks import PointTracks
+    seen: dict = {"early": 0, "trimmed": 0, "dropped": 0, "retired": []}
+    prepare, check_outliers = PointTracks.prepare_update, PointTracks.outlier_removals
+
+    def count(self, *a, **k):
+        if self._early_values is self.est.values:
+            seen["early"] += len(self._early)
+        return prepare(self, *a, **k)
+
+    def check(self, *a, **k):
+        dropped, trimmed = check_outliers(self, *a, **k)
+        seen["trimmed"] += len(trimmed)
+        seen["dropped"] += len(dropped)
+        seen["retired"] += [(pt, set(pt.obs)) for pt in self.tracks.values() if pt.retired and pt.lid in trimmed]
+        return dropped, trimmed
+
+    with pytest.MonkeyPatch.context() as mp:
+        _keep_pipeline(mp, seen)
+        mp.setattr(PointTracks, "prepare_update", count)
+        mp.setattr(PointTracks, "outlier_removals", check)
+        seen["res"] = run_dataset(mh04_12s, _cfg("point"), mode="features")
+    return seen
+
+
+def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s, point_run):
+    d, res = mh04_12s, point_run["res"]
+    est = point_run["pipe"].est
     assert res.restarts == 0 and res.recoveries == 0
     pts = est.lm.points.tracks
     assert len(pts) >= 10 and not [lid for lid in pts if lid in est.lm.tracks]
@@ -60,8 +88,9 @@ def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s):
     from vio.backend.track_arrays import gather
     plist = list(pts.values())
     hits = sum(pt.rows is not None and pt.rows[0] == tuple(pt.frames) for pt in plist)
-    plist[0].rows = None
+    kept, plist[0].rows = plist[0].rows, None
     got = est.lm.points._rows(plist)
+    plist[0].rows = kept
     ref = gather([[pt.obs[f] for f in pt.frames] for pt in plist], est.cam.line_time_s)
     assert hits >= len(plist) // 2 and all(np.array_equal(a, b, equal_nan=True) for a, b in zip(got, ref))
     e = evaluate(*res.arrays(), d.groundtruth)
@@ -76,54 +105,25 @@ def test_world_points_run_find_td_and_keep_main_factors_in_the_window(mh04_12s):
     assert e.ate_rmse < 0.01 * e.path_length and e.ate_rmse <= 1.5 * a.ate_rmse
 
 
-def test_prefetched_farewells_change_nothing(mh04_12s, monkeypatch):
+def test_prefetched_farewells_change_nothing(mh04_12s, point_run, monkeypatch):
     """Farewell factors built between keyframes (``Estimator.prefetch``) are the ones the
     keyframe's update would build: the run is the same to the last bit with and without,
     and most farewells come from the prefetch."""
     from vio.backend.estimator import Estimator
-    from vio.backend.point_tracks import PointTracks
-    used = {"early": 0}
-    orig = PointTracks.prepare_update
-
-    def count(self, *a, **k):
-        if self._early_values is self.est.values:
-            used["early"] += len(self._early)
-        return orig(self, *a, **k)
-
-    monkeypatch.setattr(PointTracks, "prepare_update", count)
-    with_prefetch = run_dataset(mh04_12s, _cfg("point"), mode="features")
-    assert used["early"] > 100
+    assert point_run["early"] > 100
     monkeypatch.setattr(Estimator, "prefetch", lambda self, t_ns: None)
     without = run_dataset(mh04_12s, _cfg("point"), mode="features")
-    for a, b in zip(with_prefetch.arrays(), without.arrays()):
+    for a, b in zip(point_run["res"].arrays(), without.arrays()):
         assert np.array_equal(a, b)
 
 
-def test_isolated_outliers_trim_the_observation_and_retire_the_point(mh04_12s, monkeypatch):
+def test_isolated_outliers_trim_the_observation_and_retire_the_point(point_run):
     """The generated tracks' gross outliers (1.5 %, single observations): the outlier check
     drops only those observations (``VisionConfig.outlier_obs``); the point keeps a main
     factor over its other observations, with the slot the outlier update gave it, and gets
     no new observation while it is in the window."""
     from vio.backend import graph
-    from vio.backend.point_tracks import PointTracks
-    from vio.pipeline import Pipeline
-    seen: dict = {"trimmed": 0, "dropped": 0, "retired": []}
-    orig_check, orig_init = PointTracks.outlier_removals, Pipeline.__init__
-
-    def check(self, *a, **k):
-        dropped, trimmed = orig_check(self, *a, **k)
-        seen["trimmed"] += len(trimmed)
-        seen["dropped"] += len(dropped)
-        seen["retired"] += [(pt, set(pt.obs)) for pt in self.tracks.values() if pt.retired and pt.lid in trimmed]
-        return dropped, trimmed
-
-    def keep(self, *a, **k):
-        orig_init(self, *a, **k)
-        seen["pipe"] = self
-
-    monkeypatch.setattr(PointTracks, "outlier_removals", check)
-    monkeypatch.setattr(Pipeline, "__init__", keep)
-    res = run_dataset(mh04_12s, _cfg("point"), mode="features")
+    seen, res = point_run, point_run["res"]
     est = seen["pipe"].est
     assert res.restarts == 0 and res.recoveries == 0
     assert seen["trimmed"] >= 5 and seen["retired"]
@@ -146,7 +146,6 @@ def test_world_points_calibrate_a_wrong_extrinsic_online(mh04_12s):
     import gtsam
 
     from vio.backend import graph
-    from vio.pipeline import Pipeline
     d = mh04_12s
     true = d.cam0.calib.T_b_c
     off = gtsam.Pose3(gtsam.Rot3.Rodrigues(np.radians([0.6, -0.5, 0.6])), np.array([0.006, -0.005, 0.006]))
@@ -156,17 +155,9 @@ def test_world_points_calibrate_a_wrong_extrinsic_online(mh04_12s):
     cfg = dataclasses.replace(cfg, backend=dataclasses.replace(
         cfg.backend, calib=dataclasses.replace(cfg.backend.calib, estimate_extrinsic=True)))
     seen: dict = {}
-    orig = Pipeline.__init__
-
-    def keep(self, *a, **k):
-        orig(self, *a, **k)
-        seen["pipe"] = self
-
-    Pipeline.__init__ = keep
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        _keep_pipeline(mp, seen)
         res = run_dataset(bad, cfg, mode="features")
-    finally:
-        Pipeline.__init__ = orig
     est = seen["pipe"].est
     assert res.restarts == 0 and res.recoveries == 0
     factors = est.smoother.getFactors()
