@@ -43,18 +43,18 @@ def _eval_one(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, 
 
 @_njit
 def _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off, target,
-                right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam, with_g):
-    """``_eval_one``'s r (2n,), J[:, 0] (2n,) and, ``with_g``, G (n, 2, 2) alone
-    (``track_eval_depth``): a depth step's inputs, the whitening's, without the pose columns."""
+                right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam, G):
+    """``_eval_one``'s r (2n,), J[:, 0] (2n,) and, into ``G`` when it is (n, 2, 2) rather
+    than (0, 2, 2), its G (``track_eval_depth``): a depth step's inputs, the whitening's,
+    without the pose columns."""
     s0, s1 = start[i], start[i + 1]
     lb = _local_bodies(bodies, lbodies, lb_start[i], lb_start[i + 1])
     r = np.empty(2 * (s1 - s0))
     jl = np.empty((1, 2 * (s1 - s0))).T   # Fortran order: _reweight_whiten's J type
-    G = np.empty((s1 - s0 if with_g else 0, 2, 2))
     track_eval_depth(lb, target[s0:s1], right[s0:s1], C, Tc, lam, td, use_td, a_uv[i], a_vel[i],
                      a_off[i], uv[s0:s1], vel[s0:s1], off[s0:s1], basis[s0:s1], sphere, sigma, kind,
-                     kk, r, jl, G, with_g)
-    return r, jl[:, 0], G
+                     kk, r, jl, G)
+    return r, jl[:, 0]
 
 
 @_njit
@@ -90,6 +90,7 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
     D = H.shape[0]
     E = 0.0
     dw = np.empty(2)
+    no_g = np.empty((0, 2, 2))
     for i in range(lam.shape[0]):
         if not active[i]:
             continue
@@ -102,9 +103,9 @@ def bundle_system(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
         # then, for the elimination, one evaluation of every column at the refined depth
         ei = 0.0
         for it in range(iters if schur else max(iters, 1)):
-            r, jl, _ = _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
-                                   a_off, target, right, uv, vel, off, basis, C, sphere, sigma, kind,
-                                   kk, li, False)
+            r, jl = _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel,
+                                a_off, target, right, uv, vel, off, basis, C, sphere, sigma, kind,
+                                kk, li, no_g)
             r *= inv
             jl *= inv
             hll, gl = _depth_terms(r, jl, Ui, dw)
@@ -256,8 +257,9 @@ def _set_whitening(bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel
     second version of it)."""
     for i in range(lam.shape[0]):
         s0, s1 = start[i], start[i + 1]
-        _, _, G = _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off,
-                              target, right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam[i], True)
+        G = np.empty((s1 - s0, 2, 2))
+        _eval_depth(i, bodies, Tc, td, use_td, start, lb_start, lbodies, a_uv, a_vel, a_off,
+                    target, right, uv, vel, off, basis, C, sphere, sigma, kind, kk, lam[i], G)
         Ui = np.zeros((2 * (s1 - s0), 2))
         di = np.zeros(2)
         whitening_2(G.reshape(2 * (s1 - s0), 2), Ui, di)

@@ -131,15 +131,18 @@ def track_eval_depth(bodies: np.ndarray, target: np.ndarray, right: np.ndarray, 
                      Tc: np.ndarray, lam: float, td: float, use_td: bool, anchor_uv: np.ndarray,
                      anchor_vel: np.ndarray, anchor_off: float, uv: np.ndarray, vel: np.ndarray,
                      off: np.ndarray, basis: np.ndarray, sphere: bool, sigma: float, kind: int,
-                     kk: float, r: np.ndarray, jl: np.ndarray, G: np.ndarray, with_g: bool) -> None:
+                     kk: float, r: np.ndarray, jl: np.ndarray, G: np.ndarray) -> None:
     """:func:`track_eval`'s ``r`` (2n,) and inverse-depth column ``jl = J[:, :1]`` (2n, 1;
-    Fortran order, as ``track_eval``'s J), reweighted, and with ``with_g`` its ``G``
-    (n, 2, 2), without the pose, extrinsic and td columns or the whitening: what a
+    Fortran order, as ``track_eval``'s J), reweighted, and, when ``G`` is (n, 2, 2) rather
+    than (0, 2, 2), its ``G``, without the pose, extrinsic and td columns or the whitening: what a
     Gauss-Newton step on ``lam`` alone needs, and what the anchor-noise whitening needs
     (``factors.landmark_schur_kernel``), at a fraction of the cost. The operations are
     ``track_eval``'s in its order, so the values are the same bits
     (``tests/test_track_kernel.py``)."""
     n = uv.shape[0]
+    # a flag argument instead would be a literal at each compiled call site: one more
+    # compiled version per value (~3.5 s of a first run's compile each)
+    with_g = G.shape[0] > 0
     pw, wi, RcTtc, A, _, _ = _shifted_anchor_terms(bodies[0], Tc, lam, td, use_td, anchor_uv, anchor_vel,
                                                    anchor_off)
     Rc, tc = Tc[:3, :3], Tc[:3, 3]

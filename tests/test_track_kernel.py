@@ -118,7 +118,7 @@ def test_depth_kernel_equals_the_full_pass(use_td, model, kernel):
     kind, kk = (0, 1.0) if robust is None else (KERNELS.index(kernel), 1.0)
     r2, jl, G2 = np.empty_like(r), np.empty((1, len(r))).T, np.full_like(G, np.nan)
     track_eval_depth(bodies, target, right, rig.C, Tc.matrix(), lam, td or 0.0, use_td, a_uv, a_vel,
-                     0.001, uv, vel, off, basis, model == "sphere", sigma, kind, kk, r2, jl, G2, True)
+                     0.001, uv, vel, off, basis, model == "sphere", sigma, kind, kk, r2, jl, G2)
     assert np.array_equal(r2, r) and np.array_equal(jl[:, 0], J[:, 0]) and np.array_equal(G2, G)
 
 
