@@ -283,6 +283,23 @@ def test_static_ids_persist_and_flow_is_near_zero(static_run) -> None:
     assert static_run[-1].track_len.max() == len(static_run)  # some corner tracked throughout
 
 
+def test_tracks_end_at_max_track_len_and_are_replaced(static_set) -> None:
+    """``max_track_len``: no track outlives it (the static real set keeps most corners for
+    all 95 frames without it), and the ended tracks' places are detected again under new
+    ids, so the count stays near the first frame's."""
+    _, cam0, _, frames0, _ = static_set
+    fe = Frontend(cam0, None, FrontendConfig(max_track_len=4, detect_min_missing=1))
+    seen: set[int] = set()
+    for k, (t, path) in enumerate(frames0[:12]):
+        fr = fe.process(t, gray(path))
+        assert fr.track_len.max() <= 4
+        n0 = n0 if k else len(fr)
+        assert len(fr) >= 0.8 * n0
+        seen |= set(fr.ids.tolist())
+    # frame 0's tracks ended at frame 4 and their replacements at frame 8: three generations
+    assert len(seen) >= 2.5 * n0 and not set(fr.ids) & set(range(n0))
+
+
 def test_static_stereo_depth_and_epipolar(static_run, static_set) -> None:
     _, cam0, cam1, _, _ = static_set
     T_0_1 = np.linalg.inv(cam0.T_b_c.matrix()) @ cam1.T_b_c.matrix()

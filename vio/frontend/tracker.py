@@ -248,6 +248,9 @@ class KltTracker:
             raise ValueError(f"frame time {t_ns} ns is not after the previous {prev.t_ns} ns")
         img = self.preprocess(img, f"cam {self.cam.calib.name} image at t={t_ns} ns")
         ids, px, uv, vel, tlen = self._track_from(prev, img, t_ns, R_prev_cur)
+        if self.cfg.max_track_len:
+            young = tlen <= self.cfg.max_track_len
+            ids, px, uv, vel, tlen = ids[young], px[young], uv[young], vel[young], tlen[young]
         keep, mask = spatial_mask((self.cam.height, self.cam.width), px, tlen,
                                   self.cfg.min_dist_px, self.cfg.border_px)
         ids, px, uv, vel, tlen = ids[keep], px[keep], uv[keep], vel[keep], tlen[keep]
