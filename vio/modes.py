@@ -122,6 +122,14 @@ MODE_DEFAULTS["hybrid"]["backend"]["solver"]["bookkeeping"] = "next_frame"
 # each) 11.09 / 7.24 / 5.25 -> 11.09 / 7.20 / 5.24 mm; but real MH_01 from frame 0 5.9 -> 6.5
 # mm (mean of 6 runs, each with a negligible change of an LK setting: 5.5-6.2 -> 5.9-6.8 mm)
 MODE_DEFAULTS["stereo"]["frontend"] = {"stereo_at": "keyframe"}
+# stereo: tracks end after 40 frames (FrontendConfig.max_track_len, the LK position's growing
+# error). Unlimited -> 40 (-> 20): real MH_01 12 starts (0, 20, ..., 220) 5.44 -> 5.29 (5.00)
+# mm; flight renders with the real lens, 8-ms blur and exposure changes (MH_03@60, V1_02@25,
+# V2_02@30, MH_04@50, 20 s each) 1.82 / 0.80 / 2.69 / 2.16 -> 1.59 / 0.68 / 1.20 / 1.06 (1.37 /
+# 0.81 / 0.92 / 1.87) cm; sharp 40-s flight renders (bench_flights.py defaults, 8) mean 0.068 ->
+# 0.052 % of the path, 5 of 8 better. Hybrid not (mean over the four lens renders 0.48 ->
+# 0.45 cm at 40, 0.65 at 20; real MH_01 4.78 -> 4.68 / 4.88 mm): its photometric points hold it
+MODE_DEFAULTS["stereo"]["frontend"]["max_track_len"] = 40
 # hybrid likewise (its photometric points read the keyframes' pairs themselves): real MH_01
 # from frame 0 4.9 mm either way, 7 stretches 5.00 -> 5.02 mm, renders seeds 11 / 14 (6 starts
 # each) 35.13 / 10.09 -> 35.11 / 10.09 mm; alternated medians of 5, whole process 1.93 ->
