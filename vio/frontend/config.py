@@ -31,7 +31,7 @@ class FrontendConfig:
     # tracks older than this many frames are ended (their places detected again, under new
     # ids); 0: never. An LK track's position leaves its first observation's point as the view
     # changes: against the rendered scene (sharp V2_02 flight, 300 frames) the median error
-    # is 0.10 px one frame on, 0.54 px at 8-16 frames, 0.92 px at 32-64, 1.37 px beyond,
+    # is 0.10 px one frame on, 0.54 px at 8-15 frames, 0.92 px at 32-63, 1.37 px beyond,
     # the same when each track is re-tracked from its first image, so it is the view, not
     # chained LK steps. The backend reads each observation as independent 1-px noise. On
     # for stereo (vio.modes), whose pairs give depth at every keyframe; mono needs the
