@@ -157,6 +157,17 @@ def test_renderer_depth_matches_reference_raycast(gs_run):
     assert np.abs(depth[ys.ravel(), xs.ravel()] - z_ref).max() < 1e-4
 
 
+def test_scene_is_rebuilt_from_its_description(gs_run):
+    """``Scene.from_description`` inverts ``describe`` (what sim_truth.yaml holds): the same
+    tables, so the same ray casts (the benchmarks rebuild the truth's scene from it)."""
+    _, _, world = gs_run
+    scene = world.scene
+    back = type(scene).from_description(scene.describe())
+    np.testing.assert_array_equal(back.rects, scene.rects)
+    np.testing.assert_array_equal(back.cyls, scene.cyls)
+    assert back.room_size == scene.room_size and back.names == scene.names
+
+
 def test_stereo_points_are_consistent(gs_run):
     """A point ray-cast from cam0 projects into cam1 at a pixel whose ray hits the same
     point (1e-6 m) unless occluded by something nearer; patches there match (NCC)."""

@@ -97,6 +97,17 @@ class Scene:
         return {"room_size": [float(x) for x in self.room_size], "boxes": boxes,
                 "pillars": pillars, "surfaces": list(self.names)}
 
+    @staticmethod
+    def from_description(desc: dict) -> "Scene":
+        """The scene :meth:`describe` wrote (walls, then boxes, then pillars)."""
+        size = np.asarray(desc["room_size"], float)
+        rects = _box_faces(np.zeros(3), size, inward=True)
+        for box in desc["boxes"]:
+            rects += _box_faces(np.asarray(box["min"], float), np.asarray(box["max"], float), inward=False)
+        cyls = [[*p["center"], p["radius"], *p["z"]] for p in desc["pillars"]]
+        return Scene(tuple(float(x) for x in size), np.asarray(rects, float),
+                     np.asarray(cyls, float).reshape(-1, 5), tuple(desc["surfaces"]))
+
 
 def _box_faces(lo: np.ndarray, hi: np.ndarray, inward: bool) -> list[list[float]]:
     """Six rectangles of the box ``[lo, hi]``; normals inward (room) or outward (box)."""
