@@ -37,6 +37,15 @@ class FrontendConfig:
     # for stereo (vio.modes), whose pairs give depth at every keyframe; mono needs the
     # parallax of long tracks (real MH_05 mono at 40 frames: 47.8 -> 100 mm)
     max_track_len: int = 0
+    # each track's position aligned, every frame, to the patch of its first observation by
+    # an affine warp with gain and offset (vio.frontend.anchor), starting at LK's answer; an
+    # alignment that fails (leaves the image, no convergence, more than anchor_max_shift_px
+    # from LK, zero-mean NCC below anchor_min_zncc) keeps LK's position and anchors anew there
+    anchor: bool = False
+    anchor_patch: int = 15          # template side, px (odd)
+    anchor_max_iter: int = 10
+    anchor_max_shift_px: float = 2.0
+    anchor_min_zncc: float = 0.8
     # pyramidal Lucas-Kanade
     lk_window: int = 21
     lk_levels: int = 3              # extra pyramid levels above full resolution
@@ -108,11 +117,13 @@ class FrontendConfig:
 
     def __post_init__(self) -> None:
         positive = ("max_features", "detect_min_missing", "min_dist_px", "lk_window", "lk_max_iter",
-                "stereo_lk_max_iter", "block_size",
+                "stereo_lk_max_iter", "block_size", "anchor_max_iter", "anchor_max_shift_px",
                     "fb_threshold_px", "ransac_threshold_px", "clahe_clip", "clahe_tiles",
                     "stereo_init_depth_m", "stereo_fb_threshold_px", "stereo_epipolar_px",
                     "min_depth_m", "max_depth_m", "quality_level", "lk_eps")
         check_ranges(self, positive=positive)   # and every other number >= 0 (the levels, border_px, ...)
+        if self.anchor_patch < 5 or self.anchor_patch % 2 == 0:
+            raise ValueError(f"FrontendConfig.anchor_patch must be odd and >= 5, got {self.anchor_patch}")
         if self.lk_window < 5:
             raise ValueError(f"FrontendConfig.lk_window must be >= 5, got {self.lk_window}")
         if not 0.0 < self.ransac_confidence < 1.0:

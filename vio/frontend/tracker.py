@@ -2,7 +2,8 @@
 
 Per frame: a tone curve (``FrontendConfig.contrast``); pyramidal Lucas-Kanade from the previous frame (initial
 guess = previous pixel, or the rotation-only prediction when the caller passes the
-inter-frame camera rotation); forward-backward check; RANSAC on undistorted
+inter-frame camera rotation); forward-backward check; with ``FrontendConfig.anchor`` each
+position aligned to its track's first patch (``vio.frontend.anchor``); RANSAC on undistorted
 points; a spatial mask of radius ``min_dist_px`` around surviving tracks (longest
 tracks first, crowded shorter ones dropped); Shi-Tomasi corners fill the frame up
 to ``max_features``. Ids are int64, unique and stable for the life of a track.
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vio.frontend.anchor import Anchors, new_anchors, realign
 from vio.frontend.camera import Camera
 from vio.frontend.clahe import Clahe
 from vio.frontend.config import FrontendConfig
@@ -234,6 +236,7 @@ class KltTracker:
         self.preprocess = Preprocess(cam, cfg)
         self._next_id = 0
         self._prev: MonoTracks | None = None
+        self._anchors: Anchors | None = None   # rows of _prev (cfg.anchor)
         self.brightness_passes = 0    # frames tracked again after an exposure change (lk_brightness)
 
     def track(self, t_ns: int, img: np.ndarray, R_prev_cur: np.ndarray | None = None) -> MonoTracks:
@@ -247,13 +250,14 @@ class KltTracker:
         if prev is not None and t_ns <= prev.t_ns:
             raise ValueError(f"frame time {t_ns} ns is not after the previous {prev.t_ns} ns")
         img = self.preprocess(img, f"cam {self.cam.calib.name} image at t={t_ns} ns")
-        ids, px, uv, vel, tlen = self._track_from(prev, img, t_ns, R_prev_cur)
-        if self.cfg.max_track_len:
-            young = tlen <= self.cfg.max_track_len
-            ids, px, uv, vel, tlen = ids[young], px[young], uv[young], vel[young], tlen[young]
-        keep, mask = spatial_mask((self.cam.height, self.cam.width), px, tlen,
-                                  self.cfg.min_dist_px, self.cfg.border_px)
+        ids, px, uv, vel, tlen, anc = self._track_from(prev, img, t_ns, R_prev_cur)
+        keep = np.flatnonzero(tlen <= self.cfg.max_track_len) if self.cfg.max_track_len else slice(None)
         ids, px, uv, vel, tlen = ids[keep], px[keep], uv[keep], vel[keep], tlen[keep]
+        order, mask = spatial_mask((self.cam.height, self.cam.width), px, tlen,
+                                   self.cfg.min_dist_px, self.cfg.border_px)
+        ids, px, uv, vel, tlen = ids[order], px[order], uv[order], vel[order], tlen[order]
+        if anc is not None:
+            anc = anc.take(np.arange(len(anc))[keep][order])
         missing = self.cfg.max_features - len(ids)
         # OpenVINS (TrackKLT): detect only when enough tracks are missing; always at the start
         new_px = (detect_corners(img, mask, missing, self.cfg)
@@ -272,14 +276,18 @@ class KltTracker:
             image=img,
         )
         self._prev = out
+        if self.cfg.anchor:
+            fresh = new_anchors(img, new_px, self.cfg.anchor_patch)
+            self._anchors = fresh if anc is None else Anchors.stack([anc, fresh])
         return out
 
     def _track_from(self, prev: MonoTracks | None, img: np.ndarray, t_ns: int,
                     R_prev_cur: np.ndarray | None) -> tuple[np.ndarray, ...]:
-        """LK + checks from ``prev``; returns (ids, px, uv, velocity, track_len) arrays."""
+        """LK + checks from ``prev``; returns (ids, px, uv, velocity, track_len) arrays and
+        the surviving rows' anchors (``cfg.anchor``; else None)."""
         if prev is None or len(prev.ids) == 0:
             return (np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)),
-                    np.zeros((0, 2)), np.zeros(0, dtype=np.int64))
+                    np.zeros((0, 2)), np.zeros(0, dtype=np.int64), None)
         guess = prev.px
         if R_prev_cur is not None:
             pred = self.cam.predict_rotated_px(prev.uv, R_prev_cur)
@@ -294,10 +302,15 @@ class KltTracker:
         ok &= self.cam.in_image(px, self.cfg.border_px)
         idx = np.flatnonzero(ok)
         px = px[idx]
+        anc = None
+        if self.cfg.anchor and self._anchors is not None:
+            px, anc, _ = realign(img, px, self._anchors.take(idx), self.cfg.anchor_max_iter,
+                                 self.cfg.anchor_max_shift_px, self.cfg.anchor_min_zncc)
         uv = self.cam.undistort_px(px)
         if self.cfg.ransac:
             inl = ransac_inliers(prev.uv[idx], uv, self.cam.fx, self.cfg)
             idx, px, uv = idx[inl], px[inl], uv[inl]
+            anc = anc.take(np.flatnonzero(inl)) if anc is not None else None
         dt = (t_ns - prev.t_ns) * 1e-9
         vel = (uv - prev.uv[idx]) / dt
-        return prev.ids[idx], px, uv, vel, prev.track_len[idx] + 1
+        return prev.ids[idx], px, uv, vel, prev.track_len[idx] + 1, anc
