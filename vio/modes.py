@@ -130,6 +130,18 @@ MODE_DEFAULTS["stereo"]["frontend"] = {"stereo_at": "keyframe"}
 # 0.052 % of the path, 5 of 8 better. Hybrid not (mean over the four lens renders 0.48 ->
 # 0.45 cm at 40, 0.65 at 20; real MH_01 4.78 -> 4.68 / 4.88 mm): its photometric points hold it
 MODE_DEFAULTS["stereo"]["frontend"]["max_track_len"] = 40
+# stereo: each track's position aligned every frame to the patch of its first observation
+# (FrontendConfig.anchor, vio.frontend.anchor). Tracked position's median error after 32-63
+# frames (bench_klt_drift.py): sharp V2_02@5+40 0.93 -> 0.09 px, with the real lens, 8-ms blur
+# and exposure changes V2_02@30+20 1.17 -> 0.22 px. Stereo ATE: real MH_01 12 starts (0, 20,
+# ..., 220) 5.29 -> 5.23 mm; lens/blur/exposure renders MH_03@60 / V1_02@25 / V2_02@30 / MH_04@50
+# 1.59 / 0.68 / 1.20 / 1.06 -> 1.07 / 0.56 / 0.42 / 1.31 cm, unseen MH_05@40 / V1_03@30 /
+# V2_01@20 / V2_03@20 2.36 / 0.67 / 0.36 / 0.90 -> 1.55 / 0.47 / 0.22 / 0.60 cm (7 of 8
+# better; mean 0.060 -> 0.042 % of the path); without the 40-frame cap real MH_01 5.75 mm. Cost ~3 ms a frame in the KLT worker.
+# Not mono: real MH_05 17 starts 52.7 -> 63.3 mm (its scale +0.18 -> +1.07 %), although the
+# same renders (7 of 8 better, one equal: 0.145 -> 0.083 % of the path) and real MH_01 mono (12 starts
+# 5.96 -> 5.57 mm) gain; nor hybrid (benchmarks/README.md, stop 67)
+MODE_DEFAULTS["stereo"]["frontend"]["anchor"] = True
 # hybrid likewise (its photometric points read the keyframes' pairs themselves): real MH_01
 # from frame 0 4.9 mm either way, 7 stretches 5.00 -> 5.02 mm, renders seeds 11 / 14 (6 starts
 # each) 35.13 / 10.09 -> 35.11 / 10.09 mm; alternated medians of 5, whole process 1.93 ->
