@@ -93,18 +93,23 @@ def run_flight(job: tuple) -> list[tuple[str, float, str]]:
     return rows
 
 
+def add_render_options(ap: argparse.ArgumentParser, what: str = "") -> None:
+    """The rendering's options (seed, td, lens, blur, exposure); ``what`` prefixes the help."""
+    ap.add_argument("--seed", type=int, default=0, help=f"{what}scene, texture and image-noise seed")
+    ap.add_argument("--td-ms", type=float, default=0.0, help=f"{what}camera stamp to exposure offset (ms)")
+    ap.add_argument("--distort", action="store_true", help=f"{what}the sequences' own distorted cameras")
+    ap.add_argument("--blur-ms", type=float, default=0.0, help=f"{what}motion blur: exposure duration (ms)")
+    ap.add_argument("--exposure", default="none", choices=("none", "smooth", "step"),
+                    help=f"{what}brightness changes (vio.sim.render.exposure_sequence)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--flights", default=FLIGHTS, help="comma list of SEQ@START+SECONDS")
     ap.add_argument("--modes", default="mono", help="comma list of vio run modes (image modes)")
     ap.add_argument("--config", type=Path, default=None, help="YAML overrides, as vio run --config")
     ap.add_argument("--workers", type=int, default=1, help="flights rendered and run in parallel")
-    ap.add_argument("--seed", type=int, default=0, help="scene, texture and image-noise seed")
-    ap.add_argument("--td-ms", type=float, default=0.0, help="camera stamp to exposure offset (ms)")
-    ap.add_argument("--distort", action="store_true", help="the sequences' own distorted cameras")
-    ap.add_argument("--blur-ms", type=float, default=0.0, help="motion blur: exposure duration (ms)")
-    ap.add_argument("--exposure", default="none", choices=("none", "smooth", "step"),
-                    help="brightness changes (vio.sim.render.exposure_sequence)")
+    add_render_options(ap)
     a = ap.parse_args()
     optics = FlightOptics(distortion=a.distort, blur_s=a.blur_ms * 1e-3)
     if not GT_DIR.is_dir():

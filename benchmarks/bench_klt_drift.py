@@ -45,7 +45,7 @@ one_blas_thread()   # before numpy loads (vio.threads)
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
-from bench_flights import GT_DIR, parse_flight, rendered  # noqa: E402  (benchmarks/)
+from bench_flights import GT_DIR, add_render_options, parse_flight, rendered  # noqa: E402  (benchmarks/)
 from vio.config import to_dict  # noqa: E402
 from vio.frontend import Camera, FrontendConfig, KltTracker  # noqa: E402
 from vio.io.euroc import load_euroc, read_image  # noqa: E402
@@ -203,12 +203,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300, help="cam0 images tracked")
     ap.add_argument("--near-m", type=float, default=2.0, help="near / far split of the depth")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
-    ap.add_argument("--seed", type=int, default=0, help="--flight: scene, texture and noise seed")
-    ap.add_argument("--td-ms", type=float, default=0.0, help="--flight: stamp to exposure offset (ms)")
-    ap.add_argument("--distort", action="store_true", help="--flight: the sequence's own lens")
-    ap.add_argument("--blur-ms", type=float, default=0.0, help="--flight: motion blur (ms)")
-    ap.add_argument("--exposure", default="none", choices=("none", "smooth", "step"),
-                    help="--flight: brightness changes")
+    add_render_options(ap, "--flight: ")
     a = ap.parse_args()
     logging.disable(logging.WARNING)
     folder = dataset(a)

@@ -3,26 +3,28 @@
 A KLT step matches a translation-only window from one frame to the next. As the view
 changes, the patch around a point deforms (perspective: scale, shear, rotation), and
 the best translation of a deformed window is not the point's position: against a
-render's scene the tracked position leaves its point by 0.54 px (median) after 8-15
-frames and 1.37 px after 64 (benchmarks/README.md, stop 66), the same when each track
-is re-tracked from its own first image. Here each track keeps the patch of its first
-observation (its *anchor*: ``P`` x ``P`` grey levels, (P, P) float32, of the
-preprocessed image around that pixel) and each frame fits
+render's scene the tracked position leaves its point by 0.55 px (median) after 8-15
+frames and 1.16 px after 64 (``benchmarks/bench_klt_drift.py``), the same when each track
+is re-tracked from its own first image (stop 66). Here each track keeps the patch of its
+first observation (its *anchor*: ``P`` x ``P`` grey levels of the preprocessed image
+around that pixel) and each frame fits
 
     r(x) = I(c + A x) - (g T(x) + o),   x on the template's grid (px from its centre),
 
 over the centre ``c`` (2, px), the 2x2 affine map ``A`` and a gain / offset ``(g, o)``
-(an exposure change), by Gauss-Newton on the stacked residuals (Lucas-Kanade with an
-affine warp, forward additive: Baker & Matthews, "Lucas-Kanade 20 Years On", part 1,
-section 2, with the linear appearance terms of section 3.4 of part 3 added as two more
-parameters). It starts at the frame's LK position and the track's previous ``A, g, o``.
-The template's centre is the first observation, so ``c`` is where that same point lies
-now (to first order in the patch's deformation), whatever the chain of LK steps did.
+(an exposure change) by inverse-compositional Gauss-Newton (Baker & Matthews, "Lucas-
+Kanade 20 Years On", part 1, section 3.2; the gain and offset as two more additive
+parameters), pixels at the sensor's limits left out. It starts at the frame's LK position
+and the track's previous ``A, g, o``. The template's centre is the first observation, so
+``c`` is where that same point lies now (to first order in the patch's deformation),
+whatever the chain of LK steps did: 0.09 px median after 32-63 frames on the same render
+(0.22 px with the real lens, 8-ms blur and exposure changes; benchmarks/README.md, stop 67).
 
-An alignment that leaves the image, does not converge, moves more than
-``max_shift_px`` from LK's answer, or matches worse than ``min_zncc`` (zero-mean
-normalised cross-correlation of the warped patch and the template) keeps LK's position
-and takes a new anchor there: the track goes on, and its drift restarts from that frame.
+An alignment that leaves the image, does not settle, moves more than ``max_shift_px``
+from LK's answer, ends with an implausible ``A`` or gain, or matches worse than
+``min_zncc`` (zero-mean normalised cross-correlation of the warped patch and the
+template) keeps LK's position and takes a new anchor there: the track goes on, and its
+drift restarts from that frame.
 """
 
 from __future__ import annotations
@@ -185,76 +187,90 @@ def _template_normals(t, G, Hg):
 @njit
 def _align_one(img, t, G, Hg, c, warp, max_iter, max_shift, min_zncc):
     """Inverse-compositional Gauss-Newton (Baker & Matthews, part 1, section 3.2) on the
-    8 parameters (c, A, g, o) of the module docstring: each step fits the template's own
-    warp ``x -> dc + (1 + D) x`` and gain / offset increments to the residual (clipped pixels left out), then
+    8 parameters p = (c, A, g, o) of the module docstring: each step fits the template's
+    own warp ``x -> dc + (1 + D) x`` and gain / offset increments to the residual, then
     composes ``c + A x <- c + A (1 + D)^-1 (x - dc)``, ``g += dg``, ``o += do``. Writes the
     result into ``c`` (2,) and ``warp`` (6,) when it is accepted. Returns the status."""
     h, w = img.shape
-    n = G.shape[0]
-    half = n // 2
-    cx, cy = c[0], c[1]
-    a11, a12, a21, a22, g, o = warp[0], warp[1], warp[2], warp[3], warp[4], warp[5]
+    half = G.shape[0] // 2
+    p = np.empty(8)
+    p[0], p[1] = c[0], c[1]
+    p[2:] = warp
     H = np.empty((8, 8))
     b = np.empty(8)
     d = np.empty(8)
     moved = 1.0
     for _ in range(max_iter):
-        if not _inside(cx, cy, a11, a12, a21, a22, half, w, h):
+        if not _inside(p, half, w, h):
             return OUTSIDE
-        b[:] = 0.0
-        for i in range(n):
-            dy = float(i - half)
-            for j in range(n):
-                dx = float(j - half)
-                u = cx + a11 * dx + a12 * dy
-                v = cy + a21 * dx + a22 * dy
-                tv = t[i + 1, j + 1]
-                iv = _sample(img, u, v)
-                if _clipped(tv) or _clipped(iv):
-                    continue
-                r = iv - (g * tv + o)
-                gx, gy = G[i, j, 0] * r, G[i, j, 1] * r
-                b[0] += gx
-                b[1] += gy
-                b[2] += gx * dx
-                b[3] += gx * dy
-                b[4] += gy * dx
-                b[5] += gy * dy
-                b[6] += tv * r
-                b[7] += r
+        _steepest_descent(img, t, G, p, b)
+        g = p[6]
         for a in range(8):              # the Jacobian's geometric columns carry the gain
             sa = g if a < 6 else 1.0
             b[a] *= sa
             for e in range(a + 1):
                 H[a, e] = Hg[a, e] * sa * (g if e < 6 else 1.0)
-        if not _solve_spd(H, b, d):
+        if not _solve_spd(H, b, d) or not _compose(p, d):
             return FAILED
-        m11, m12, m21, m22 = 1.0 + d[2], d[3], d[4], 1.0 + d[5]
-        det = m11 * m22 - m12 * m21
-        if abs(det) < 0.1:
-            return FAILED
-        i11, i12, i21, i22 = m22 / det, -m12 / det, -m21 / det, m11 / det    # (1 + D)^-1
-        n11, n12 = a11 * i11 + a12 * i21, a11 * i12 + a12 * i22
-        n21, n22 = a21 * i11 + a22 * i21, a21 * i12 + a22 * i22
-        sx, sy = n11 * d[0] + n12 * d[1], n21 * d[0] + n22 * d[1]
-        cx, cy = cx - sx, cy - sy
-        a11, a12, a21, a22 = n11, n12, n21, n22
-        g, o = g + d[6], o + d[7]
-        moved = sx * sx + sy * sy
+        moved = d[0] * d[0] + d[1] * d[1]       # _compose leaves the centre's step in d[:2]
         if moved < 0.01 * 0.01 and abs(d[2]) + abs(d[3]) + abs(d[4]) + abs(d[5]) < 2e-3:
             break
-    if moved > 0.05 * 0.05 or (cx - c[0]) ** 2 + (cy - c[1]) ** 2 > max_shift * max_shift:
+    if moved > 0.05 * 0.05 or (p[0] - c[0]) ** 2 + (p[1] - c[1]) ** 2 > max_shift * max_shift:
         return FAILED
-    det = a11 * a22 - a12 * a21
-    if not (0.5 < det < 2.0) or not (0.3 < g < 3.0):
+    if not (0.5 < p[2] * p[5] - p[3] * p[4] < 2.0) or not (0.3 < p[6] < 3.0):
         return FAILED
-    if not _inside(cx, cy, a11, a12, a21, a22, half, w, h):
+    if not _inside(p, half, w, h):
         return OUTSIDE
-    if _zncc(img, t, np.array([cx, cy, a11, a12, a21, a22])) < min_zncc:
+    if _zncc(img, t, p) < min_zncc:
         return FAILED
-    c[0], c[1] = cx, cy
-    warp[0], warp[1], warp[2], warp[3], warp[4], warp[5] = a11, a12, a21, a22, g, o
+    c[0], c[1] = p[0], p[1]
+    warp[:] = p[2:]
     return OK
+
+
+@njit_inline
+def _steepest_descent(img, t, G, p, b):
+    """``b`` (8,) = sum over the template of [G dW/dp, T, 1] r at unit gain, r the residual
+    of the module docstring under ``p``; clipped pixels left out."""
+    n = G.shape[0]
+    half = n // 2
+    b[:] = 0.0
+    for i in range(n):
+        dy = float(i - half)
+        for j in range(n):
+            dx = float(j - half)
+            tv = t[i + 1, j + 1]
+            iv = _sample(img, p[0] + p[2] * dx + p[3] * dy, p[1] + p[4] * dx + p[5] * dy)
+            if _clipped(tv) or _clipped(iv):
+                continue
+            r = iv - (p[6] * tv + p[7])
+            gx, gy = G[i, j, 0] * r, G[i, j, 1] * r
+            b[0] += gx
+            b[1] += gy
+            b[2] += gx * dx
+            b[3] += gx * dy
+            b[4] += gy * dx
+            b[5] += gy * dy
+            b[6] += tv * r
+            b[7] += r
+
+
+@njit_inline
+def _compose(p, d):
+    """``p <- p o d^-1`` for the warp, ``+ d`` for gain and offset (see :func:`_align_one`);
+    ``d[:2]`` becomes the centre's move in the image. False for a near-singular ``1 + D``."""
+    m11, m12, m21, m22 = 1.0 + d[2], d[3], d[4], 1.0 + d[5]
+    det = m11 * m22 - m12 * m21
+    if abs(det) < 0.1:
+        return False
+    i11, i12, i21, i22 = m22 / det, -m12 / det, -m21 / det, m11 / det    # (1 + D)^-1
+    n11, n12 = p[2] * i11 + p[3] * i21, p[2] * i12 + p[3] * i22
+    n21, n22 = p[4] * i11 + p[5] * i21, p[4] * i12 + p[5] * i22
+    sx, sy = n11 * d[0] + n12 * d[1], n21 * d[0] + n22 * d[1]
+    p[0], p[1], p[2], p[3], p[4], p[5] = p[0] - sx, p[1] - sy, n11, n12, n21, n22
+    p[6], p[7] = p[6] + d[6], p[7] + d[7]
+    d[0], d[1] = sx, sy
+    return True
 
 
 @njit_inline
@@ -264,13 +280,13 @@ def _clipped(v):
 
 
 @njit_inline
-def _inside(cx, cy, a11, a12, a21, a22, half, w, h):
-    """Whether the patch warped by (c, A) lies where bilinear sampling may read: its four
-    corners (an affine map's extremes) in [0, W - 1) x [0, H - 1)."""
+def _inside(p, half, w, h):
+    """Whether the patch warped by ``p`` (c, A, ...) lies where bilinear sampling may read:
+    its four corners (an affine map's extremes) in [0, W - 1) x [0, H - 1)."""
     for sx in (-1.0, 1.0):
         for sy in (-1.0, 1.0):
-            u = cx + (a11 * sx + a12 * sy) * half
-            v = cy + (a21 * sx + a22 * sy) * half
+            u = p[0] + (p[2] * sx + p[3] * sy) * half
+            v = p[1] + (p[4] * sx + p[5] * sy) * half
             if not (0.0 <= u < w - 1.0 and 0.0 <= v < h - 1.0):
                 return False
     return True
