@@ -88,6 +88,13 @@ def test_the_border_gives_invalid_templates_and_outside_warps(real_image) -> Non
     np.testing.assert_array_equal(out, moved)
 
 
+@pytest.mark.parametrize("bad", [{"anchor_patch": 14}, {"anchor_patch": 3}, {"anchor_min_zncc": 1.5},
+                                 {"anchor_max_iter": 0}, {"anchor_max_shift_px": 0.0}])
+def test_anchor_options_are_checked(bad: dict) -> None:
+    with pytest.raises(ValueError, match="anchor"):
+        FrontendConfig(**bad)
+
+
 def zoom_run(img: np.ndarray, cam: Camera, anchor: bool, frames: int = 30) -> np.ndarray:
     """Track a 1.2x zoom-in with a slow turn (frame k: scale 1 + 0.2 k / frames, angle
     0.1 k / frames rad, about the image centre) and return the errors (px) of the tracks

@@ -124,6 +124,8 @@ class FrontendConfig:
         check_ranges(self, positive=positive)   # and every other number >= 0 (the levels, border_px, ...)
         if self.anchor_patch < 5 or self.anchor_patch % 2 == 0:
             raise ValueError(f"FrontendConfig.anchor_patch must be odd and >= 5, got {self.anchor_patch}")
+        if not 0.0 <= self.anchor_min_zncc <= 1.0:
+            raise ValueError(f"FrontendConfig.anchor_min_zncc must be in [0, 1], got {self.anchor_min_zncc}")
         if self.lk_window < 5:
             raise ValueError(f"FrontendConfig.lk_window must be >= 5, got {self.lk_window}")
         if not 0.0 < self.ransac_confidence < 1.0:
