@@ -71,6 +71,11 @@ class Samples:
     hidden: int = 0      # later observations skipped: behind the camera or occluded
 
 
+def bin_label(lo: int, hi: int) -> str:
+    """An age bin's column head: "1", "8-15", "64+"."""
+    return f"{lo}" if lo == hi else (f"{lo}-{hi}" if hi < 1 << 30 else f"{lo}+")
+
+
 def camera_poses(gt: GroundTruth, T_b_c: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """True ``T_w_c`` at times ``t_ns`` (K,): (R_w_c (K, 3, 3), p_w_c (K, 3))."""
     p_wb, R_wb = interpolate_poses(gt.t_ns, gt.p_w, gt.q_wxyz, np.asarray(t_ns, np.int64))
@@ -154,7 +159,7 @@ def summarize(s: Samples, near_m: float) -> list[dict]:
     for lo, hi in BINS:
         e = err[(age >= lo) & (age <= hi)]
         near = depth[(age >= lo) & (age <= hi)] < near_m
-        rows.append({"ages": f"{lo}" if lo == hi else (f"{lo}-{hi}" if hi < 1 << 30 else f"{lo}+"),
+        rows.append({"ages": bin_label(lo, hi),
                      "count": int(e.size), "median_px": med(e),
                      "p90_px": float(np.percentile(e, 90)) if e.size else None,
                      "near_count": int(near.sum()), "near_median_px": med(e[near]),

@@ -33,11 +33,10 @@ one_blas_thread()   # before numpy loads (vio.threads)
 
 import numpy as np  # noqa: E402
 
-from bench_klt_drift import BINS  # noqa: E402  (benchmarks/)
+from bench_klt_drift import BINS, bin_label, camera_poses  # noqa: E402  (benchmarks/)
 from vio.frontend import Camera, KltTracker  # noqa: E402
 from vio.io.euroc import load_euroc, read_image  # noqa: E402
 from vio.run import MODES, load_config  # noqa: E402
-from vio.trajectory import interpolate_poses  # noqa: E402
 
 MIN_BASELINE_M = 0.05
 Track = dict[int, np.ndarray]          # frame -> pixel (2,)
@@ -95,16 +94,13 @@ def main() -> None:
     if data.groundtruth is None:
         raise SystemExit(f"{a.data}: no ground truth")
     cam, n = Camera(data.cam0.calib), min(a.frames, len(data.cam0))
-    gt = data.groundtruth
-    p_wb, R_wb = interpolate_poses(gt.t_ns, gt.p_w, gt.q_wxyz, np.asarray(data.cam0.t_ns[:n], np.int64))
-    R_wc, p_wc = R_wb @ cam.T_b_c[:3, :3], p_wb + R_wb @ cam.T_b_c[:3, 3]
+    R_wc, p_wc = camera_poses(data.groundtruth, cam.T_b_c, data.cam0.t_ns[:n])
     names = [str(y or f"{a.mode} defaults") for y in (a.a, a.b)]
     runs = [tracks_by_birth(data, cam, load_config(y, mode=a.mode).frontend, n) for y in (a.a, a.b)]
     scores = score(cam, R_wc, p_wc, runs)
     print(f"{a.data}: {n} frames, {len(scores[0])} shared observations; epipolar distance from "
           "the first observation, median px by frames since it")
-    heads = [f"{lo}" if lo == hi else (f"{lo}-{hi}" if hi < 1 << 30 else f"{lo}+") for lo, hi in BINS]
-    print(f"{'':40s}" + "".join(f"{h:>8s}" for h in heads))
+    print(f"{'':40s}" + "".join(f"{bin_label(lo, hi):>8s}" for lo, hi in BINS))
     for name, s in zip(names, scores):
         cells = [s[(s[:, 0] >= lo) & (s[:, 0] <= hi), 1] for lo, hi in BINS]
         print(f"{name[-40:]:40s}" + "".join(f"{np.median(c):8.2f}" if c.size else f"{'-':>8s}" for c in cells))

@@ -175,10 +175,10 @@ def _template_normals(t, G, Hg):
             gx = 0.5 * (t[i + 1, j + 2] - t[i + 1, j])
             gy = 0.5 * (t[i + 2, j + 1] - t[i, j + 1])
             G[i, j, 0], G[i, j, 1] = gx, gy
-            J[0], J[1], J[2], J[3], J[4], J[5] = gx, gy, gx * dx, gx * dy, gy * dx, gy * dy
-            J[6], J[7] = t[i + 1, j + 1], 1.0
             if _clipped(t[i + 1, j + 1]):
                 continue
+            J[0], J[1], J[2], J[3], J[4], J[5] = gx, gy, gx * dx, gx * dy, gy * dx, gy * dy
+            J[6], J[7] = t[i + 1, j + 1], 1.0
             for a in range(8):
                 for e in range(a + 1):
                     Hg[a, e] += J[a] * J[e]
