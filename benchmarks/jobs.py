@@ -31,15 +31,27 @@ from vio.threads import one_blas_thread  # noqa: E402
 
 
 # ------------------------------------------------------------------ worker side
-def rss_mb() -> float:
-    """Current resident set size of this process (MB), from /proc."""
+def _status_mb(field: str) -> float:
+    """A memory line of /proc/self/status (MB); nan where there is none."""
     for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
+        if line.startswith(field + ":"):
             return int(line.split()[1]) / 1024.0
     return float("nan")
 
 
+def rss_mb() -> float:
+    """Current resident set size of this process (MB), from /proc."""
+    return _status_mb("VmRSS")
+
+
 def peak_rss_mb() -> float:
+    """Peak resident set size of this process (MB): /proc's VmHWM, which belongs to the
+    process image since its exec. ``ru_maxrss`` is not: Linux keeps the pre-exec maximum,
+    i.e. the forked copy of the parent, so a suite whose parent had grown to 509 MB (it
+    rendered the sim sets) reported 509 MB for every run after."""
+    mb = _status_mb("VmHWM")
+    if mb == mb:
+        return mb
     import resource
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
