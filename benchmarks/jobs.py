@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import subprocess
 import sys
@@ -50,7 +51,7 @@ def peak_rss_mb() -> float:
     i.e. the forked copy of the parent, so a suite whose parent had grown to 509 MB (it
     rendered the sim sets) reported 509 MB for every run after."""
     mb = _status_mb("VmHWM")
-    if mb == mb:
+    if not math.isnan(mb):
         return mb
     import resource
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
