@@ -82,18 +82,16 @@ def pipeline_config(overrides: dict | None = None, mode: str = "features"):
 
 def _run_system(job: dict, data, cfg, mode: str) -> tuple:
     """Ours (recording the schedule, and in image modes the front end's frames, to
-    the job's files) or the baseline replaying them; (RunResult, output times or None)."""
+    the job's files) or the baseline replaying them; (RunResult, output times or None).
+    With ``job["td_known_s"]`` the baseline's sync layer applies that (true) td."""
     from baseline_gtsam import Schedule, record_schedule, run_baseline
+    from baseline_stereo import load_frames, record_run, run_image_baseline, save_frames, with_known_td
     n = job.get("max_frames")
-    if mode == "features":
-        if job["system"] == "ours":
+    if job["system"] == "ours":
+        if mode == "features":
             res, sched = record_schedule(data, cfg, n)
             Path(job["schedule"]).write_text(json.dumps(sched.to_json()))
             return res, None
-        sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
-        return run_baseline(data, sched, cfg, max_frames=n), None
-    from baseline_stereo import load_frames, record_run, run_image_baseline, save_frames, with_known_td
-    if job["system"] == "ours":
         rec = record_run(data, cfg, mode, n)
         Path(job["schedule"]).write_text(json.dumps(rec.schedule.to_json()))
         save_frames(Path(job["frames"]), rec.frames)
@@ -102,6 +100,8 @@ def _run_system(job: dict, data, cfg, mode: str) -> tuple:
     if job.get("td_known_s") is not None:       # the baseline told the true td by the sync layer
         sched = with_known_td(sched, job["td_known_s"])
         cfg = dataclasses.replace(cfg, td_s=sched.td_s)
+    if mode == "features":
+        return run_baseline(data, sched, cfg, max_frames=n), None
     return run_image_baseline(data, sched, load_frames(Path(job["frames"])), cfg, mode, n), None
 
 

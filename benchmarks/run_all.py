@@ -106,17 +106,18 @@ def compare(spec, path: Path, overrides: dict | None = None, log=print) -> dict:
                "max_frames": spec.max_frames, "overrides": overrides or {}}
         ours = metrics(run_job({**job, "system": "ours"}), gt, td_true)
         if spec.mode == "variants" and spec.td_true_s:
-            base = {"skipped": "the baseline has no td factor: variant rows compare it at td = 0 only"}
+            base = {"skipped": "the baseline has no td factor: at td != 0 it runs told the true td"}
         elif spec.mode in NO_BASELINE:
             base = {"skipped": NO_BASELINE[spec.mode]}
         else:
             base = (metrics(run_job({**job, "system": "baseline"}), gt, td_true)
                     if "error" not in ours else {"error": "no schedule (ours failed)"})
-        # image modes: also the baseline given the true td (it has no td factor), which
-        # separates the unmodelled-td error from the rest of the comparison
+        # image modes and generator variants: also the baseline given the true td (it has no
+        # td factor), which separates the unmodelled-td error from the rest of the comparison;
+        # on a variant, its ratio to its own td = 0 twin is what that td costs the data itself
         known = (metrics(run_job({**job, "system": "baseline", "td_known_s": td_true}), gt, td_true)
-                 if ds.run_mode(spec.mode) != "features" and spec.mode not in NO_BASELINE and spec.td_true_s
-                 and "error" not in ours else None)
+                 if (ds.run_mode(spec.mode) != "features" or spec.mode == "variants")
+                 and spec.mode not in NO_BASELINE and spec.td_true_s and "error" not in ours else None)
     row = {"dataset": spec.name, "mode": spec.mode, "group": spec.group, "twin": spec.twin,
            "td_true_ms": None if td_true is None else td_true * 1e3,
            "overrides": overrides or {}, "calib_error": spec.calib_error, "ours": ours, "baseline": base,

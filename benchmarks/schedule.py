@@ -5,6 +5,7 @@ layer's constant td (``Schedule``, JSON round trip), recorded by ``record_schedu
 
 from __future__ import annotations
 
+import dataclasses
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
@@ -76,16 +77,27 @@ def _capture_init(states: list[InitialState]):
 
 def record_schedule(data: EurocDataset, cfg: PipelineConfig,
                     max_frames: int | None = None) -> tuple[RunResult, Schedule]:
-    """Run our pipeline (``vio.run.run_dataset``) and record its decisions."""
+    """Run our pipeline (``vio.run.run_dataset``) on feature tracks and record its
+    decisions, each at its frame's camera stamp plus the sync layer's constant ``cfg.td_s``
+    (the time the replay gives that frame): our own frame times also carry the td fed back
+    since the initialization (``CalibConfig``; up to the whole offset on data with one),
+    which would match no replayed frame, and would not move with ``with_known_td``."""
     kfs: dict[int, bool] = {}
     states: list[InitialState] = []
+    frame_of: dict[int, int] = {}         # our frame time -> frame index
+    stamps = data.cam0.t_ns
+    td_ns = int(round(cfg.td_s * 1e9))
 
     def sink(o: FrameOutput) -> None:
+        frame_of[int(o.t_ns)] = o.index
         if o.keyframe:
-            kfs[int(o.t_ns)] = bool(o.still)
+            kfs[int(stamps[o.index]) + td_ns] = bool(o.still)
     with _capture_init(states):
         res = run_dataset(data, cfg, max_frames, sinks=[sink])
     if not states:
         raise RuntimeError(f"{data.root}: our pipeline never initialized")
-    kfs.setdefault(states[0].t_ns, True)
-    return res, Schedule(states[0], kfs, cfg.td_s)
+    init = states[0]
+    if init.t_ns in frame_of:
+        init = dataclasses.replace(init, t_ns=int(stamps[frame_of[init.t_ns]]) + td_ns)
+    kfs.setdefault(init.t_ns, True)
+    return res, Schedule(init, kfs, cfg.td_s)

@@ -285,21 +285,31 @@ def test_calibration_spec_perturbs_the_extrinsic_and_keeps_the_truth(tmp_path):
 
 def test_variant_rows_get_their_own_table_with_the_twin_ratio():
     """``variants`` rows (other generators) are tabulated apart, with the td error and the
-    ATE ratio to their td = 0 twin; the feature tables and the td table are unchanged."""
+    ATE ratio to their td = 0 twin, for ours and for the baseline told the true td (its
+    plain run at td 0); the feature tables and the td table are unchanged."""
     res = json.loads(json.dumps(TINY))
     base = report.render(res)
 
-    def row(td, ate, est):
+    def row(td, ate, est, base_ate):
         name = f"boxwall:SEQ@0+60s/td{td:g}ms"
-        return {"dataset": name, "mode": "variants", "group": "boxwall:SEQ", "td_true_ms": float(td),
-                "twin": None if td == 0 else "boxwall:SEQ@0+60s/td0ms", "overrides": {},
-                "ours": {"ate_rmse": ate, "ate_pct": 0.1, "td_ms": est, "td_err_ms": est - td, "path_m": 50.0,
-                         "frame_ms": {"mean": 30.0, "p50": 20.0, "p95": 90.0, "max": 200.0}},
-                "baseline": {"skipped": "ours only"}, "ratio": {"ate": None, "time": None}}
-    res["accuracy"]["runs"] += [row(0, 0.04, -0.1), row(25, 0.05, 24.7)]
+        b = {"ate_rmse": base_ate, "ate_pct": base_ate * 2.5} if base_ate else {"error": "failed"}
+        r = {"dataset": name, "mode": "variants", "group": "boxwall:SEQ", "td_true_ms": float(td),
+             "twin": None if td == 0 else "boxwall:SEQ@0+60s/td0ms", "overrides": {},
+             "ours": {"ate_rmse": ate, "ate_pct": 0.1, "td_ms": est, "td_err_ms": est - td, "path_m": 50.0,
+                      "frame_ms": {"mean": 30.0, "p50": 20.0, "p95": 90.0, "max": 200.0}},
+             "baseline": b if td == 0 else {"skipped": "told the true td"}, "ratio": {"ate": None, "time": None}}
+        if td:
+            r["baseline_td_known"] = b
+        return r
+    res["accuracy"]["runs"] += [row(0, 0.04, -0.1, 0.04), row(25, 0.05, 24.7, 0.06), row(12, 0.044, 11.9, None)]
     md = report.render(res)
     assert "### Generator variants" in md
-    assert "| boxwall:SEQ@0+60s/td25ms | 25.0 | 24.70 | -0.30 | 0.050 | 0.100 | 1.25 | n/a |" in md
+    assert "| boxwall:SEQ@0+60s/td25ms | 25.0 | 24.70 | -0.30 | 0.050 | 0.100 | 1.25 | 0.060 / 0.150 | 1.50 |" in md
+    assert "| boxwall:SEQ@0+60s/td0ms | 0.0 | -0.10 | -0.10 | 0.040 | 0.100 | n/a | 0.040 / 0.100 | n/a |" in md
+    assert "| boxwall:SEQ@0+60s/td12ms | 12.0 | 11.90 | -0.10 | 0.044 | 0.100 | 1.10 | n/a | n/a |" in md
+    line = report._readme_variants(res["accuracy"])[0]
+    assert "ATE / td0 twin max 1.25 (2 of 2 within 1.25x; the GTSAM-native baseline told the true td " \
+           "max 1.50 (0 of 1 within 1.25x))" in line
     assert md.split("### Generator variants")[0].rstrip() == base.split("Skipped:")[0].rstrip() or \
         "boxwall" not in md.split("### Generator variants")[0]
     import datasets as ds
