@@ -23,8 +23,11 @@ START, END = "<!-- results:start -->", "<!-- results:end -->"
 
 def _known_baseline(r: dict) -> dict:
     """The baseline's metrics on run ``r`` told the true td (at true td 0 its plain run:
-    the sync layer's 0 is the truth there); {} where it did not run."""
-    return r.get("baseline_td_known") or (r.get("baseline") or {} if not r.get("td_true_ms") else {})
+    the sync layer's 0 is the truth there; a nearest-row set's true td is its rows' offset,
+    ~1 us); {} where it did not run."""
+    if r.get("baseline_td_known"):
+        return r["baseline_td_known"]
+    return (r.get("baseline") or {}) if abs(r.get("td_true_ms") or 0.0) < 0.01 else {}
 
 
 def _twin_ratios(r: dict, by_name: dict) -> tuple[float | None, float | None]:
