@@ -432,3 +432,25 @@ def test_keyframe_cost_times_every_keyframe_and_restores_the_estimator():
     t, t_upd, n_vars, n_points, n_kf, home = zip(*rows)
     assert all(0 < u <= s for s, u in zip(t, t_upd)) and all(home)
     assert max(n_points) > 0 and max(n_kf) > 3 and all(v > p for v, p in zip(n_vars, n_points))
+
+
+def test_td_range_runs_every_sequence_at_td_0_and_rates_each_run_against_it():
+    """``bench_td_range.py``: the run list adds each sequence's td = 0 run, keeps the seed
+    and the variant's generator, and the table gives each run's td error and its ATE over
+    its sequence's td = 0 run (NaN where a run has no twin or no baseline)."""
+    import bench_td_range as tr
+    from vio.sim.variants import VARIANTS
+    todo = tr.specs("boxwall", ["MH_03_medium", "V2_01_easy"], [-30.0, 30.0], 430, 60.0)
+    assert [s.td_true_s for s in todo] == [-0.03, 0.0, 0.03] * 2
+    assert all(dict(s.gen)["seed"] == 430 and s.name.startswith("boxwall:") for s in todo)
+    assert dict(todo[0].gen)["selection"] == dict(VARIANTS["boxwall"].items())["selection"]
+    with pytest.raises(SystemExit, match="not one of"):
+        tr.specs("nonesuch", ["MH_03_medium"], [0.0], 1, 60.0)
+    rows = [{"name": "a/td0", "group": "A", "td_true_ms": 0.0, "td_ms": 0.2, "ate": 0.04, "pct": 0.1, "base": 0.05},
+            {"name": "a/td30", "group": "A", "td_true_ms": 30.0, "td_ms": 29.4, "ate": 0.06, "pct": 0.15,
+             "base": 0.04},
+            {"name": "b/td30", "group": "B", "td_true_ms": 30.0, "td_ms": 30.1, "ate": 0.02, "pct": 0.05}]
+    out = tr.table(rows)
+    assert out[2].split()[1:] == ["30.00", "29.40", "-0.60", "0.0600", "0.150", "1.50", "0.0400", "0.80"]
+    assert out[3].split()[-3:] == ["nan", "nan", "nan"]
+    assert out[-1] == "td error max 0.60 ms, 2 of 3 within 0.5 ms; ATE max 0.150 % of the path"
