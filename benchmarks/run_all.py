@@ -248,14 +248,24 @@ def record_section(results: dict, name: str, modes: list[str] | None) -> None:
     machines = results.setdefault("section_machines", {})
     if name == "accuracy":
         for k in [k for k in commits if k.startswith("accuracy[")
-                  and (not modes or set(k[len("accuracy["):-1].split(",")) <= set(modes))]:
+                  and (not modes or _modes_of(k) <= set(modes))]:
             del commits[k]
         if modes:
             name = f"accuracy[{','.join(modes)}]"
+    commits.pop(name, None)            # re-inserted last: the keys are in the order measured
+    commits[name] = results["machine"]["commit"]
+    keys = [k for k in commits if k == "accuracy" or k.startswith("accuracy[")]
+    for i, k in enumerate(keys[:-1]):  # an earlier key whose every mode later keys measured again
+        if _modes_of(k) <= set().union(*(_modes_of(j) for j in keys[i + 1:])):
+            del commits[k]
     for k in [k for k in machines if k not in commits]:
         del machines[k]
-    commits[name] = results["machine"]["commit"]
     machines[name] = results["machine"]["cpu"]
+
+
+def _modes_of(key: str) -> set[str]:
+    """The accuracy modes a ``section_commits`` key measured (``accuracy``: all of them)."""
+    return set(ds.MODES) if key == "accuracy" else set(key[len("accuracy["):-1].split(","))
 
 
 def machine() -> dict:

@@ -42,3 +42,23 @@ def test_a_full_accuracy_run_drops_every_mode_key_and_one_machine_is_named_once(
     assert res["section_commits"] == {"accuracy": "a1"}
     assert res["section_machines"] == {"accuracy": "AMD EPYC"}
     assert machine_line(res).startswith("Machine: AMD EPYC, 2 cores")
+
+
+def test_an_earlier_key_goes_once_later_keys_have_measured_every_mode_of_it():
+    """The plain ``accuracy`` key (every mode) and ``accuracy[features,mono]`` are gone once
+    later refreshes have covered their modes between them; one still holding rows stays."""
+    import datasets as ds
+    res = _results("AMD EPYC", "a1")
+    record_section(res, "accuracy", None)
+    res["machine"]["commit"] = "b2"
+    record_section(res, "accuracy", ["features", "mono"])
+    record_section(res, "accuracy", ["stereo", "mono", "hybrid", "direct"])
+    assert list(res["section_commits"]) == ["accuracy", "accuracy[features,mono]",
+                                             "accuracy[stereo,mono,hybrid,direct]"]
+    res["machine"]["commit"] = "c3"
+    record_section(res, "accuracy", ["variants"])
+    record_section(res, "accuracy", ["features"])
+    assert {"features", "variants", "stereo", "mono", "direct", "hybrid"} >= set(ds.MODES)
+    assert res["section_commits"] == {"accuracy[stereo,mono,hybrid,direct]": "b2",
+                                      "accuracy[variants]": "c3", "accuracy[features]": "c3"}
+    assert set(res["section_machines"]) == set(res["section_commits"])
