@@ -72,6 +72,21 @@ def test_parabola_refines_between_grid_points():
     assert abs(res.best_s - 0.010) < 5e-4 and res.td_s == res.best_s
 
 
+def test_an_offset_beyond_the_grid_is_seen_but_not_applied():
+    """A true 25 ms searched over +-20 ms: the minimum lies on the grid's edge, so no
+    curvature, no sigma and nothing applied, but its gain still reports that the rotations
+    see an offset (the dynamic initialization then walks its batch from there), where a
+    true 0 in the same window reports none."""
+    imu, R = _shaking(seed=3)
+    kf = np.arange(12, len(R) - 12, 20)
+    cfg = TdSearchConfig(search_s=0.02)
+    far = search_td(imu, imu.t_ns[kf], _pairs(R, kf, 5, 0.2, seed=4), np.zeros(3), cfg)
+    assert far.best_s == pytest.approx(0.02) and far.td_s == 0.0 and far.sigma_s == float("inf")
+    assert far.gain >= cfg.try_gain
+    none = search_td(imu, imu.t_ns[kf], _pairs(R, kf, 0, 0.2, seed=4), np.zeros(3), cfg)
+    assert none.gain < cfg.try_gain
+
+
 @pytest.mark.parametrize("x0, truth", [(0.0203, 0.0252), (-0.029, -0.0245), (0.0, 0.0)])
 def test_refine_minimum_walks_to_the_parabola_vertex(x0, truth):
     """The batch td walk (``refine_minimum``) on an exact parabola: the vertex to the

@@ -192,10 +192,16 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
     c_best, bg, r = cost(best)
     inl = r <= tol
     dof = 3 * int(inl.sum()) - 4
-    if dof <= 0 or a <= 0:
+    if dof <= 0:
         return TdSearch(0.0, best, float("inf"), 0.0, bg, n, int(inl.sum()))
     var = float(r[inl] @ r[inl]) / dof                      # per-axis residual variance
     gain = (costs[m] - c_best) / var                        # grid[m] is delta = 0
+    if a <= 0:
+        # a minimum on the grid's edge (or a flat cost): no sigma, nothing applied, but its
+        # gain still says whether the rotations see an offset; the batch walk from it
+        # decides (generated MH_05@40 at -30 ms: edge at -50 ms, window accepted at 0 with
+        # the gyro bias taking up the offset, 0.363 % of the path)
+        return TdSearch(0.0, best, float("inf"), float(gain), bg, n, int(inl.sum()))
     sigma = float(np.sqrt(var / a))
     ok = gain >= cfg.min_gain and sigma <= cfg.max_sigma_s
     return TdSearch(best if ok else 0.0, best, sigma, float(gain), bg, n, int(inl.sum()))
