@@ -242,16 +242,13 @@ def run_micro(quick: bool, log=print) -> dict:
 # ------------------------------------------------------------------ entry
 def record_section(results: dict, name: str, modes: list[str] | None) -> None:
     """Note the commit and machine that measured section ``name`` (``section_commits``,
-    ``section_machines``): refreshed accuracy modes get a key of their own, and the
-    earlier keys whose rows they all replaced (or all of them, at a full run) are dropped."""
+    ``section_machines``): refreshed accuracy modes get a key of their own, and an earlier
+    accuracy key goes once the keys after it have measured every one of its modes again (at a
+    full run, every earlier key)."""
     commits = results.setdefault("section_commits", {})
     machines = results.setdefault("section_machines", {})
-    if name == "accuracy":
-        for k in [k for k in commits if k.startswith("accuracy[")
-                  and (not modes or _modes_of(k) <= set(modes))]:
-            del commits[k]
-        if modes:
-            name = f"accuracy[{','.join(modes)}]"
+    if name == "accuracy" and modes:
+        name = f"accuracy[{','.join(modes)}]"
     commits.pop(name, None)            # re-inserted last: the keys are in the order measured
     commits[name] = results["machine"]["commit"]
     keys = [k for k in commits if k == "accuracy" or k.startswith("accuracy[")]
