@@ -317,6 +317,13 @@ def with_known_td(sched: Schedule, td_s: float) -> Schedule:
     return Schedule(init, {t + d: f for t, f in sched.keyframes.items()}, td_s)
 
 
+def told_true_td(sched: Schedule, cfg: PipelineConfig, td_s: float) -> tuple[Schedule, PipelineConfig]:
+    """The schedule (``with_known_td``) and the config of a baseline replay whose sync
+    layer applies ``td_s``: the two carry the same td."""
+    sched = with_known_td(sched, td_s)
+    return sched, dataclasses.replace(cfg, td_s=sched.td_s)
+
+
 def run_image_baseline(data: EurocDataset, sched: Schedule, frames: list[FeatureFrame | None],
                        cfg: PipelineConfig, mode: str, max_frames: int | None = None,
                        bcfg: BaselineConfig = BaselineConfig(),

@@ -20,7 +20,6 @@ tracks are cached as the suite's (``datasets.prepare``). Asserts nothing.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -49,6 +48,9 @@ def specs(variant: str, sequences: list[str], td_ms: list[float], seed: int,
 
 def run_one(spec: ds.DatasetSpec, baseline: bool) -> dict:
     """Ours (and the baseline told the true td) on one generated set: a row of the table."""
+    from baseline_gtsam import run_baseline
+    from baseline_stereo import told_true_td
+    from schedule import record_schedule
     from vio.evaluation import evaluate
     from vio.io.euroc import load_euroc
     from vio.run import default_config
@@ -56,16 +58,12 @@ def run_one(spec: ds.DatasetSpec, baseline: bool) -> dict:
     data = load_euroc(path)
     td_true = ds.true_td_s(spec, path)
     cfg = default_config("features")
-    from schedule import record_schedule
     res, sched = record_schedule(data, cfg)
     ev = evaluate(*res.arrays(), data.groundtruth)
     row = {"name": spec.name, "group": spec.group, "td_true_ms": td_true * 1e3,
            "td_ms": res.outputs[-1].td_s * 1e3, "ate": ev.ate_rmse, "pct": 100 * ev.ate_rmse / ev.path_length}
     if baseline:
-        from baseline_gtsam import run_baseline
-        from baseline_stereo import with_known_td
-        known = with_known_td(sched, td_true)
-        b = run_baseline(data, known, dataclasses.replace(cfg, td_s=known.td_s))
+        b = run_baseline(data, *told_true_td(sched, cfg, td_true))
         row["base"] = evaluate(*b.arrays(), data.groundtruth).ate_rmse
     return row
 

@@ -85,7 +85,7 @@ def _run_system(job: dict, data, cfg, mode: str) -> tuple:
     the job's files) or the baseline replaying them; (RunResult, output times or None).
     With ``job["td_known_s"]`` the baseline's sync layer applies that (true) td."""
     from baseline_gtsam import Schedule, record_schedule, run_baseline
-    from baseline_stereo import load_frames, record_run, run_image_baseline, save_frames, with_known_td
+    from baseline_stereo import load_frames, record_run, run_image_baseline, save_frames, told_true_td
     n = job.get("max_frames")
     if job["system"] == "ours":
         if mode == "features":
@@ -98,8 +98,7 @@ def _run_system(job: dict, data, cfg, mode: str) -> tuple:
         return rec.result, rec.emitted_s
     sched = Schedule.from_json(json.loads(Path(job["schedule"]).read_text()))
     if job.get("td_known_s") is not None:       # the baseline told the true td by the sync layer
-        sched = with_known_td(sched, job["td_known_s"])
-        cfg = dataclasses.replace(cfg, td_s=sched.td_s)
+        sched, cfg = told_true_td(sched, cfg, job["td_known_s"])
     if mode == "features":
         return run_baseline(data, sched, cfg, max_frames=n), None
     return run_image_baseline(data, sched, load_frames(Path(job["frames"])), cfg, mode, n), None
