@@ -113,6 +113,21 @@ def test_refine_minimum_stops_at_its_range_and_at_unevaluable_points():
     assert x == 0.0 and a == 0.0 and drop == 0.0
 
 
+def test_refine_minimum_brackets_a_minimum_on_its_range_edge():
+    """With ``bracket``, a minimum on the range's edge (a batch walked from 0 over +-30 ms
+    when the true offset is 30 ms) gets its curvature from one step beyond, so a sigma;
+    one further beyond still ends at the edge with none."""
+    para = lambda v: lambda x: 50.0 + 5e5 * (x - v) ** 2   # noqa: E731
+    x, a, _ = refine_minimum(para(0.0305), 0.0, 0.005, 0.03)
+    assert abs(x - 0.03) < 1e-12 and a == 0.0                # without: no curvature
+    x, a, _ = refine_minimum(para(0.0305), 0.0, 0.005, 0.03, bracket=True)
+    assert abs(x - 0.0305) < 1e-9 and abs(a - 5e5) < 1e-3
+    x, a, _ = refine_minimum(para(-0.0295), 0.0, 0.005, 0.03, bracket=True)
+    assert abs(x + 0.0295) < 1e-9 and abs(a - 5e5) < 1e-3
+    x, a, _ = refine_minimum(para(0.1), 0.0, 0.005, 0.03, bracket=True)
+    assert abs(x - 0.03) < 1e-12 and a == 0.0
+
+
 def test_constant_rotation_leaves_the_offset_unobservable():
     """A constant rate: shifting every keyframe by delta rotates nothing between them, so
     no remainder is applied."""

@@ -122,5 +122,5 @@ def batch_td(cam: CameraCalib, cfg: BackendConfig, params, imu: ImuData, batch: 
     drop against ``center``."""
     tc = cfg.init.dynamic.td
     td, a, drop = refine_minimum(lambda x: td_cost(cam, cfg, params, imu, batch, x - td0),
-                                 center, tc.batch_step_s, tc.batch_range_s)
+                                 center, tc.batch_step_s, tc.batch_range_s, bracket=True)
     return td, (1.0 / np.sqrt(2.0 * a) if a > 0 else float("inf")), drop

@@ -207,15 +207,18 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
     return TdSearch(best if ok else 0.0, best, sigma, float(gain), bg, n, int(inl.sum()))
 
 
-def refine_minimum(cost: Callable[[float], float], x0: float, step: float, max_shift: float
-                   ) -> tuple[float, float, float]:
+def refine_minimum(cost: Callable[[float], float], x0: float, step: float, max_shift: float,
+                   bracket: bool = False) -> tuple[float, float, float]:
     """The minimum of a 1-D ``cost`` near ``x0``: the grid ``x0 + k step`` is walked from
     ``k = -1, 0, 1`` towards lower cost while the lowest point is at an edge and within
     ``max_shift`` of ``x0``, then a parabola through the lowest point and its neighbours
     gives the sub-step value. Returns ``(x, a, drop)``: the minimum, the parabola's
     curvature (``cost ~ c + a (x - x_min)^2``; 0 when the minimum is at an end of the
     walk, x then the lowest grid point) and the cost drop against ``x0`` (>= 0).
-    ``cost`` may return inf (not evaluable): such points are never the minimum."""
+    ``cost`` may return inf (not evaluable): such points are never the minimum. With
+    ``bracket``, a lowest point on the range's edge gets one more evaluation a step beyond
+    it: ``max_shift`` then bounds the minimum, not its bracket (a minimum within half a step
+    beyond the edge is found; one further out still returns the edge with no curvature)."""
     pts = {k: cost(x0 + k * step) for k in (-1, 0, 1)}
     kmax = int(round(max_shift / step))
     while True:
@@ -227,6 +230,11 @@ def refine_minimum(cost: Callable[[float], float], x0: float, step: float, max_s
             pts[k + 1] = cost(x0 + (k + 1) * step)
         else:
             break
+    if bracket and abs(k) == kmax and kmax > 0 and np.isfinite(pts[k]):
+        out = k + (1 if k > 0 else -1)
+        pts[out] = cost(x0 + out * step)
+        if pts[out] < pts[k]:           # still falling: not bracketed
+            del pts[out]
     c1 = pts[k]
     drop = float(pts[0] - c1) if np.isfinite(pts[0]) and np.isfinite(c1) else 0.0
     if not np.isfinite(c1) or k - 1 not in pts or k + 1 not in pts:
