@@ -62,6 +62,24 @@ def test_search_recovers_the_offset_of_a_shaking_window(delta_ms):
         assert abs(res.td_s) < 1.5e-3
 
 
+@pytest.mark.parametrize("delta_ms", [-30, 0, 25])
+@pytest.mark.parametrize("bg_off", [[0.1, -0.08, 0.06], [0.15, 0.1, -0.1]])
+def test_search_starts_from_a_wrong_bias(delta_ms, bg_off):
+    """A starting bias 0.1-0.15 rad/s off (one fitted with the offset unmodelled) leaves
+    no pair within the 1.5-degree tolerance: the wide-tolerance start still finds the
+    offset and the bias; started from it alone (``wide_tol_factor`` 1) the search reports
+    a wrong minimum (at true 0 it even applies -11 ms)."""
+    imu, R = _shaking(seed=3)
+    kf = np.arange(12, len(R) - 12, 20)
+    pairs = _pairs(R, kf, delta_ms // 5, 0.2, seed=4)
+    res = search_td(imu, imu.t_ns[kf], pairs, BG + bg_off, TdSearchConfig())
+    assert abs(res.best_s - delta_ms * 1e-3) < 1.5e-3 and np.abs(res.bg - BG).max() < 0.005
+    assert res.n_inliers == res.n_pairs
+    assert (res.td_s == res.best_s) if delta_ms else abs(res.td_s) < 1.5e-3
+    old = search_td(imu, imu.t_ns[kf], pairs, BG + bg_off, TdSearchConfig(wide_tol_factor=1.0))
+    assert abs(old.best_s - delta_ms * 1e-3) > 5e-3 and old.n_inliers <= 3
+
+
 def test_parabola_refines_between_grid_points():
     """A 3-ms grid around a true 10 ms (grid points 9 and 12 ms): the parabola through the
     cost minimum and its neighbours lands within 0.5 ms."""
