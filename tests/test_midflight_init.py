@@ -102,9 +102,9 @@ def test_unknown_offset_is_found_by_the_first_window(v102_flight_td25):
     assert dv < 0.15 and np.degrees(np.arccos(np.clip(cos, -1, 1))) < 1.5
 
 
-def _first_window_with_and_without_batch_td(tmp_path, seq: str, gen: TrackGenConfig):
-    """Tracks generated on ``seq`` by ``gen`` (sync layer at 0), their first dynamic window,
-    and its alignment without and with the batch's td (``batch_step_s`` 0 / default)."""
+def _first_window_aligned(tmp_path, seq: str, gen: TrackGenConfig, **td_changes):
+    """Tracks generated on ``seq`` by ``gen`` (sync layer at 0), their first dynamic
+    window, and its alignment with the default td search and with ``td_changes`` to it."""
     from dataclasses import replace
     generate_tracks(shared("euroc_imu_gt", seq), tmp_path, gen)
     d = load_euroc(tmp_path)
@@ -112,8 +112,8 @@ def _first_window_with_and_without_batch_td(tmp_path, seq: str, gen: TrackGenCon
     pk = list(packets(d.imu, d.cam0.t_ns, 0.0, d.features))
     dc = cfg.init.dynamic
     win = init_window([p for p in pk if p.t_ns <= pk[0].t_ns + int(dc.window_s * 1e9) + 1000], dc.step_s)
-    off = replace(cfg, init=replace(cfg.init, dynamic=replace(dc, td=replace(dc.td, batch_step_s=0.0))))
-    return win, align(win, d.cam0.calib, d.imu_calib, off), align(win, d.cam0.calib, d.imu_calib, cfg)
+    old = replace(cfg, init=replace(cfg.init, dynamic=replace(dc, td=replace(dc.td, **td_changes))))
+    return win, align(win, d.cam0.calib, d.imu_calib, old), align(win, d.cam0.calib, d.imu_calib, cfg)
 
 
 def test_window_batch_pins_the_offset_the_rotations_miss(tmp_path):
@@ -122,8 +122,9 @@ def test_window_batch_pins_the_offset_the_rotations_miss(tmp_path):
     window is aligned at 0), the window's batch cost puts it within 1.5 ms
     (``vio.backend.init_batch.batch_td``; measured 26.2 ms). Over 30 s of these tracks the
     remainder found by the rotations alone (20.3 ms) left 0.063 m of ATE, the batch's 0.044 m."""
-    win, res_off, res = _first_window_with_and_without_batch_td(
-        tmp_path, "MH_03_medium", TrackGenConfig(start_s=65.0, duration_s=5.0, seed=8, td_s=0.025))
+    win, res_off, res = _first_window_aligned(
+        tmp_path, "MH_03_medium", TrackGenConfig(start_s=65.0, duration_s=5.0, seed=8, td_s=0.025),
+        batch_step_s=0.0)
     assert res_off.ok and res.ok, (res_off.reason, res.reason)
     assert abs((res_off.state.td_s or 0.0) - 0.025) > 0.004
     assert abs(res.state.td_s - 0.025) < 0.0015 and res.state.t_ns == win.t_ns[0]
@@ -137,8 +138,28 @@ def test_window_refused_for_a_batch_disagreement_tries_the_batch_offset(tmp_path
     window's batch puts the remainder at 5 ms and the window is accepted there, at 1.5 s.
     (30 s generated, as the benchmark's excerpt: the room, and so the tracks, follow the
     excerpt's whole flight.)"""
-    win, res_off, res = _first_window_with_and_without_batch_td(
-        tmp_path, "V2_03_difficult", TrackGenConfig(start_s=26.0, duration_s=30.0, seed=65, td_s=0.005))
+    win, res_off, res = _first_window_aligned(
+        tmp_path, "V2_03_difficult", TrackGenConfig(start_s=26.0, duration_s=30.0, seed=65, td_s=0.005),
+        batch_step_s=0.0)
     assert not res_off.ok and "disagree" in res_off.reason
     assert res.ok, res.reason
     assert abs(res.state.td_s - 0.005) < 0.0015 and res.state.t_ns == win.t_ns[0]
+
+
+@pytest.mark.parametrize("seq, start, changes", [
+    # the window's starting gyro bias, fitted at td 0, left no pair within tolerance near
+    # -30 ms (the search's minimum at -48.3 ms); from a wide-tolerance start -31.8 ms
+    ("V2_03_difficult", 80.0, {"wide_tol_factor": 1.0}),
+    # smooth rotation: the rotations' best, -26.6 ms, has a gain of 3.8 only; the window
+    # refused at 0 (velocity sigma 1.8 m/s) is accepted there and walked by the batch
+    ("MH_04_difficult", 65.0, {"refused_try_gain": 9.0}),
+])
+def test_first_window_finds_a_30ms_offset(tmp_path, seq, start, changes):
+    """Generated 30-s excerpts (``bench_midflight.py --seed 81 --td-ms=-30``), camera 30 ms
+    early, sync layer at 0: the 1.5-s window is accepted with td within 1.5 ms, where the
+    search without the change named waited for the 2.0-s window."""
+    win, res_old, res = _first_window_aligned(
+        tmp_path, seq, TrackGenConfig(start_s=start, duration_s=30.0, seed=81, td_s=-0.03), **changes)
+    assert not res_old.ok
+    assert res.ok, res.reason
+    assert abs(res.state.td_s + 0.03) < 0.0015 and res.state.t_ns == win.t_ns[0]

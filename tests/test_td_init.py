@@ -198,3 +198,10 @@ def test_shift_state_round_trip_and_motion(dt_ms):
     T1, v1 = shift_state(T, v, bias, imu, t0, t1, params)
     T2, v2 = shift_state(T1, v1, bias, imu, t1, t0, params)
     assert np.allclose(T2.matrix(), T.matrix(), atol=1e-9) and np.allclose(v2, v, atol=1e-9)
+
+
+@pytest.mark.parametrize("bad", [{"wide_tol_factor": 0.5}, {"refused_try_gain": 10.0},
+                                 {"refused_try_gain": -1.0}])
+def test_search_config_rejects_out_of_range_values(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        TdSearchConfig(**bad)

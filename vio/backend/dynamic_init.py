@@ -236,10 +236,12 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
         res = _align_shifted(win, found.td_s, cam, cfg, params, rots)
     else:
         res = _align(win, cam, cfg, params, pims, rots, bg, agree)
-        if not res.ok and seen:
-            # a weaker candidate: the alignment's own checks decide
+        if not res.ok and found.best_s != 0.0 and found.gain >= dc.td.refused_try_gain:
+            # a weaker candidate: the alignment's own checks decide; accepted, it is walked
+            # by the batch as a seen one
             alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
-            res = alt if alt.ok else res
+            if alt.ok:
+                res, seen = alt, True
     if seen:   # an accepted window only
         return _refine_td(win, res, found.best_s, cam, cfg, params, rots) if res.ok else res
     if not res.ok and res.batch is not None:

@@ -30,7 +30,11 @@ class TdSearchConfig:
     lower cost is kept: a starting bias fitted with the offset unmodelled can leave no
     pair within ``tol_deg`` near the true offset (generated V2_03@80 and V1_03@70 at -30 ms,
     seed 81: 0 inliers from -45 to -15 ms, the window waited for 2.0 s; with it -31.8 and
-    -32.8 ms at 1.5 s)."""
+    -32.8 ms at 1.5 s). ``refused_try_gain`` (at most ``try_gain``): a window refused at the
+    sync layer's offset is aligned at the rotations' best offset when its gain is at least
+    this, and, accepted there, walked by the batch as a seen one (smooth rotation shows a
+    true offset weakly: generated MH_04@65 at -30 ms, seed 81, best -26.6 ms at gain 3.8,
+    refused at 0 for a velocity sigma of 1.8 m/s; accepted at 1.5 s instead of 2.0 s)."""
 
     search_s: float = 0.05
     step_s: float = 0.0025
@@ -43,11 +47,15 @@ class TdSearchConfig:
     batch_range_s: float = 0.03
     batch_min_change_s: float = 0.0005
     wide_tol_factor: float = 8.0
+    refused_try_gain: float = 2.0
 
     def __post_init__(self) -> None:
         check_ranges(self, positive=("step_s",))
         if not self.wide_tol_factor >= 1.0:
             raise ValueError(f"TdSearchConfig.wide_tol_factor must be >= 1, got {self.wide_tol_factor}")
+        if not 0.0 <= self.refused_try_gain <= self.try_gain:
+            raise ValueError(f"TdSearchConfig.refused_try_gain must be within [0, try_gain = {self.try_gain}], "
+                             f"got {self.refused_try_gain}")
 
 
 @dataclass(frozen=True)
