@@ -188,8 +188,8 @@ def run_accuracy(quick: bool, log=print, modes: list[str] | None = None, keep: d
     specs, skipped = ds.registry(quick, modes)
     os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(HERE), os.environ.get("PYTHONPATH", "")])
     if workers == 1:    # one at a time, from this process, at `vio run`'s priority: Ray runs its
-        # workers at nice 15, where the front-end worker's lower priority (FrontendConfig.worker_nice)
-        # shields the backend less (real MH_01 stereo backend p95 45 instead of 32 ms)
+        # workers at nice 15 (with the front-end worker at FrontendConfig.worker_nice 19, real
+        # MH_01 stereo's backend p95 was 45 instead of 32 ms there)
         rows = _serial(specs)
     else:
         from vio.batch import map_jobs

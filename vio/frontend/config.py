@@ -109,11 +109,15 @@ class FrontendConfig:
     # concurrency (vio.overlap): track in a worker process while the backend solves;
     # the output is identical either way, only the wall time changes
     worker_process: bool = True
-    # the worker's nice value (0-19): the backend, which waits for nothing but the
-    # features, preempts the worker, which takes the idle time. Real MH_01 stereo / hybrid
-    # / MH_05 mono, 0 -> 19: 2.79 -> 2.81x / 1.9 -> 2.06x / 3.7 -> 3.8x real time,
-    # backend p95 52 -> 32 / 92 -> 75 / 43 -> 39 ms per frame; same output
-    worker_nice: int = 19
+    # the worker's nice value (0-19; same output at any). 19 lets the backend preempt the
+    # worker on an idle machine (stop 52's Xeon, real MH_01 stereo / hybrid / MH_05 mono, 0
+    # -> 19: 2.79 -> 2.81x / 1.9 -> 2.06x / 3.7 -> 3.8x real time, backend p95 52 -> 32 / 92
+    # -> 75 / 43 -> 39 ms) but starves it behind any other load of the same session or
+    # cgroup (a launch file's other nodes): real MH_01 stereo beside two busy processes, 19 /
+    # 10 / 5 / 2 / 0: 0.1 / 0.4 / 0.9 / 1.6 / 2.2x real time over the loop; `--live` took
+    # 236 s for 16 s of data. Idle at 0 (EPYC VM, stop 70, 3 alternated runs): MH_01 stereo
+    # wall 5.30 -> 5.06 s, p95 20.1 -> 22.7 ms, max 26 -> 30 ms; MH_05 mono p95 38 ms both
+    worker_nice: int = 0
 
     def __post_init__(self) -> None:
         positive = ("max_features", "detect_min_missing", "min_dist_px", "lk_window", "lk_max_iter",
