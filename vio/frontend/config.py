@@ -115,7 +115,7 @@ class FrontendConfig:
     # -> 75 / 43 -> 39 ms) but starves it behind any other load of the same session or
     # cgroup (a launch file's other nodes): real MH_01 stereo beside two busy processes, 19 /
     # 10 / 5 / 2 / 0: 0.1 / 0.4 / 0.9 / 1.6 / 2.2x real time over the loop; `--live` took
-    # 236 s for 16 s of data. Idle at 0 (EPYC VM, stop 70, 3 alternated runs): MH_01 stereo
+    # 236 s for 16 s of data. Idle at 0 (2.6-GHz Xeon VM, stop 70, 3 alternated runs): MH_01 stereo
     # wall 5.30 -> 5.06 s, p95 20.1 -> 22.7 ms, max 26 -> 30 ms; MH_05 mono p95 38 ms both
     worker_nice: int = 0
 
