@@ -167,13 +167,14 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
     """The td remainder of a window (module docstring): ``imu`` covering the keyframes
     ``t_kf_ns`` (K,) ns, ``pairs`` ``(i, j, R_bi_bj)`` visual body rotations between
     keyframes, ``bg0`` (3,) rad/s the starting gyro bias."""
-    zero = TdSearch(0.0, 0.0, float("inf"), 0.0, np.asarray(bg0, float), 0, 0)
+    bg0 = np.asarray(bg0, float)
+    zero = TdSearch(0.0, 0.0, float("inf"), 0.0, bg0, 0, 0)
     if cfg.search_s <= 0 or len(imu) < 2:
         return zero
     prob = _Problem(imu, t_kf_ns, pairs, cfg.search_s)
     n = len(prob.ti)
     if n < cfg.min_pairs:
-        return TdSearch(0.0, 0.0, float("inf"), 0.0, np.asarray(bg0, float), n, 0)
+        return TdSearch(0.0, 0.0, float("inf"), 0.0, bg0, n, 0)
     tol = np.radians(cfg.tol_deg)
     m = int(round(cfg.search_s / cfg.step_s))
     grid = np.arange(-m, m + 1) * cfg.step_s
@@ -184,7 +185,7 @@ def search_td(imu: ImuData, t_kf_ns, pairs: list, bg0: np.ndarray, cfg: TdSearch
         # V2_03@80 at -30 ms, -45..-15 ms all 20 pairs out); the lower cost is kept
         best = None
         for start in (bg0, prob.solve_bg(bg0, delta, cfg.wide_tol_factor * tol)[0]):
-            bg, r = prob.solve_bg(np.asarray(start, float), delta, tol)
+            bg, r = prob.solve_bg(start, delta, tol)
             c = float(np.minimum(r, tol) @ np.minimum(r, tol))
             if best is None or c < best[0]:
                 best = (c, bg, r)
