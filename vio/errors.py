@@ -26,3 +26,13 @@ class DataError(ValueError):
 
 class ConfigError(ValueError):
     """A configuration file or dictionary that does not match its dataclass."""
+
+
+def one_line(exc: BaseException, width: int = 120) -> str:
+    """An exception's message on one line, for a log record: its first non-blank line
+    (GTSAM's messages start with a newline and run to ten lines), cut at ``width``
+    characters; the exception's type name when the message is blank."""
+    for line in str(exc).splitlines():
+        if line.strip():
+            return line.strip()[:width]
+    return type(exc).__name__

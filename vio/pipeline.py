@@ -22,6 +22,7 @@ from vio.backend.init import imu_stillness, static_init
 from vio.backend.stereo_init import stereo_align
 from vio.config import check_ranges
 from vio.direct.config import DirectConfig
+from vio.errors import one_line
 from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
 from vio.imu import concat
@@ -312,7 +313,7 @@ class Pipeline:
             self.est.initialize(state)
         except RuntimeError as exc:
             log.error("initialization at t=%d failed (%s); will retry", pkt.t_ns,
-                      str(exc).splitlines()[0][:120])
+                      one_line(exc))
             self.est.smoother = None
             return False
         self._first_keyframe(pkt)

@@ -63,6 +63,7 @@ from vio.backend.dynamic_init import align, init_window
 from vio.backend.estimator import Estimator
 from vio.backend.init import InitialState
 from vio.backend.stereo_init import stereo_align
+from vio.errors import one_line
 from vio.imu import rotate
 
 log = logging.getLogger(__name__)
@@ -197,7 +198,7 @@ class Reinit:
             new.initialize(state, T_b_c=old.extrinsic(), td_s=td)
         except RuntimeError as exc:
             log.error("re-initialization refused by the solver (%s); the soft restart's window "
-                      "carries on", str(exc).splitlines()[0][:120])
+                      "carries on", one_line(exc))
             return
         pipe.adopt(new, buf)
         self._seen = new.divergences

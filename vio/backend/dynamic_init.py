@@ -55,6 +55,7 @@ from vio.backend.gyro_init import robust_gyro_bias, window_rotations
 from vio.backend.init_batch import WindowBatch, add_landmarks, add_priors, batch_td
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.td_init import search_td, shift_state
+from vio.errors import one_line
 from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 from vio.backend.vi_align import (AlignProblem, ViSolution, WindowObs, chain_increments, excitation,
@@ -267,7 +268,7 @@ def _refine_td(win: InitWindow, res: AlignResult, hint: float, cam: CameraCalib,
     try:
         td, sigma, drop = batch_td(cam, cfg, params, win.imu_all, res.batch, td0, hint)
     except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
-        log.warning("td from the batch failed (%s): the window stays at %.1f ms", exc, td0 * 1e3)
+        log.warning("td from the batch failed (%s): the window stays at %.1f ms", one_line(exc), td0 * 1e3)
         return res
     log.debug("td from the batch: %.2f ms (sigma %.2f ms, cost drop %.1f) after %.2f ms",
               td * 1e3, sigma * 1e3, drop, td0 * 1e3)
@@ -321,7 +322,7 @@ def _align(win: InitWindow, cam: CameraCalib, cfg: BackendConfig, params, pims: 
         est, mean_err, graph = _batch_refine(cam, cfg, pims, vi, obs, tracks, gravity)
         length, sd = scale_sigma(graph, est, len(obs.t) - 1)
     except RuntimeError as exc:
-        return _reject(f"batch refinement failed: {str(exc).splitlines()[0]}", **diag)
+        return _reject(f"batch refinement failed: {one_line(exc)}", **diag)
     diag.update(scale_sigma=sd / length if length > 0 else NAN)
     if length > 3.0 * sd and not sd <= ic.dynamic.max_scale_sigma * length:
         return _reject(f"scale poorly determined ({100 * sd / length:.1f}% over {length:.2f} m of "

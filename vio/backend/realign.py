@@ -52,6 +52,7 @@ from vio.backend import graph
 from vio.backend.health import RealignConfig
 from vio.backend.regauge import Similarity, apply_similarity
 from vio.backend.scale_refine import RefineConfig, interval, solve
+from vio.errors import one_line
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -143,7 +144,7 @@ class GapRealign:
             apply_similarity(est, Similarity(1.0, res.R_corr, pivot, T_b_c.translation()))
         except (RuntimeError, ValueError) as exc:   # the old smoother stays
             log.error("gravity re-alignment not applied: the rebuilt smoother failed (%s)",
-                      str(exc).splitlines()[0][:120])
+                      one_line(exc))
             self._resume(est, pims)
             return
         est.realigned += 1
@@ -166,4 +167,4 @@ class GapRealign:
             est._update(g, gtsam.Values(), {}, [])
         except RuntimeError as exc:
             log.error("IMU factors after the gap not added: the smoother refused them (%s)",
-                      str(exc).splitlines()[0][:120])
+                      one_line(exc))

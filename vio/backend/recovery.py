@@ -16,6 +16,7 @@ import numpy as np
 from vio.backend import graph, smoother
 from vio.backend.config import InitConfig
 from vio.backend.init import InitialState
+from vio.errors import one_line
 
 log = logging.getLogger(__name__)
 X = graph.X
@@ -36,7 +37,7 @@ def recover(est, exc: Exception, k0: int, k1: int, pred: gtsam.NavState,
     """Restart the window from the last good state after a solver failure."""
     est.recoveries += 1
     log.error("solver failure at keyframe %d (%s): re-initializing from the last good "
-              "state (recovery #%d)", k1, str(exc).splitlines()[0][:120], est.recoveries)
+              "state (recovery #%d)", k1, one_line(exc), est.recoveries)
     good = est.values
     T_b_c = good.atPose3(graph.EXTRINSIC)
     td = float(good.atVector(graph.TD)[0])
@@ -126,7 +127,7 @@ def reiterate(est, t_ns: int, f_imu: gtsam.NonlinearFactor) -> bool:
         try:
             smoother.update(est.smoother)
         except RuntimeError as exc:   # an update that raised leaves iSAM2 unusable: rebuilt
-            log.warning("t=%d ns: re-iteration %d after keyframe %d refused (%s)", t_ns, n, est.k, exc)
+            log.warning("t=%d ns: re-iteration %d after keyframe %d refused (%s)", t_ns, n, est.k, one_line(exc))
             try:
                 smoother.qr_resolve(est, gtsam.NonlinearFactorGraph(), exc)
                 est.values = est.smoother.calculateEstimate()

@@ -33,6 +33,7 @@ from vio.backend.smoother import install, rebuilt
 from vio.backend.scale_refine import RefineConfig, Refinement, interval, solve
 from vio.backend.viba import History
 from vio.backend.viba_worker import BatchWorker
+from vio.errors import one_line
 
 if TYPE_CHECKING:
     from vio.backend.estimator import Estimator
@@ -356,7 +357,7 @@ class ScaleRefiner:
             apply_similarity(est, sim)
         except RuntimeError as exc:
             log.error("scale refinement not applied: the rebuilt smoother failed (%s)",
-                      str(exc).splitlines()[0][:120])
+                      one_line(exc))
             return
         self.applied += 1
         est.health.reset(est.kf_t[est.k], est.latest()[2])   # its fallback states are in the old world
@@ -375,6 +376,6 @@ class ScaleRefiner:
         try:
             est._update(g, gtsam.Values(), {}, [])
         except RuntimeError as exc:
-            log.error("scale prior not applied: the smoother refused it (%s)", str(exc).splitlines()[0][:120])
+            log.error("scale prior not applied: the smoother refused it (%s)", one_line(exc))
             return
         self.applied += 1

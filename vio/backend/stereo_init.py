@@ -44,6 +44,7 @@ from vio.backend.config import BackendConfig, StereoInitConfig
 from vio.backend.gyro_init import gyro_bias
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.landmarks import stereo_depth
+from vio.errors import one_line
 from vio.imu import combined_params
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 
@@ -144,7 +145,7 @@ def refine_poses(points: dict[int, np.ndarray], frames, poses: list[gtsam.Pose3]
     try:
         est = gtsam.LevenbergMarquardtOptimizer(g, vals, params).optimize()
     except RuntimeError as exc:    # cheirality or an indeterminate system: keep PnP
-        log.info("stereo initialization: bundle adjustment failed (%s)", str(exc).splitlines()[0])
+        log.info("stereo initialization: bundle adjustment failed (%s)", one_line(exc))
         return poses
     return [est.atPose3(Xk(j)) for j in range(len(poses))]
 
