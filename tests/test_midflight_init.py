@@ -163,3 +163,28 @@ def test_first_window_finds_a_30ms_offset(tmp_path, seq, start, changes):
     assert not res_old.ok
     assert res.ok, res.reason
     assert abs(res.state.td_s + 0.03) < 0.0015 and res.state.t_ns == win.t_ns[0]
+
+
+def test_accepted_window_with_a_weak_candidate_is_walked(tmp_path):
+    """Generated MH_05 tracks 80 s into the flight (seed 83), camera 15 ms early, sync
+    layer at 0: the pair rotations' best offset, -18.2 ms, has a gain of 6.3 (below
+    ``try_gain``), and the window aligned at 0 is accepted. Walked by its batch from there
+    (``TdSearchConfig.walk_gain``) it is re-aligned at -14.1 ms: over the 30-s excerpt
+    0.224 -> 0.111 % of the path (with the window replayed at that td, ``vio.init_retime``)."""
+    win, res_old, res = _first_window_aligned(
+        tmp_path, "MH_05_difficult", TrackGenConfig(start_s=80.0, duration_s=30.0, seed=83, td_s=-0.015),
+        walk_gain=9.0)
+    assert res_old.ok and not res_old.state.td_s
+    assert res.ok, res.reason
+    assert abs(res.state.td_s + 0.015) < 0.0015 and res.state.t_ns == win.t_ns[0]
+
+
+def test_window_refused_at_the_rotations_offset_is_walked(tmp_path):
+    """Generated V2_03 tracks 29 s into the flight (seed 83), camera 22 ms late: the
+    rotations put the offset at 25.6 ms (gain 86, applied), and the window aligned there is
+    refused for a batch-alignment disagreement (3.1 degrees). Its batch, walked from 25.6
+    ms, finds 22.0 ms, where the window is accepted at 1.5 s (it waited for 2.0 s)."""
+    win, _, res = _first_window_aligned(
+        tmp_path, "V2_03_difficult", TrackGenConfig(start_s=29.0, duration_s=30.0, seed=83, td_s=0.022))
+    assert res.ok, res.reason
+    assert abs(res.state.td_s - 0.022) < 0.0015 and res.state.t_ns == win.t_ns[0]

@@ -243,13 +243,18 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
             alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
             if alt.ok:
                 res, seen = alt, True
-    if seen:   # an accepted window only
-        return _refine_td(win, res, found.best_s, cam, cfg, params, rots) if res.ok else res
-    if not res.ok and res.batch is not None:
-        # refused for a disagreement of its batch and alignment, which an offset the pair
-        # rotations miss gives (generated V2_03 from 26 s, seed 65, true remainder 5 ms:
-        # 4.9 degrees at 1.5 s; at the true offset the window is accepted)
-        return _refine_td(win, res, 0.0, cam, cfg, params, rots)
+    if res.batch is None:
+        return res
+    if res.ok and seen:
+        return _refine_td(win, res, found.best_s, cam, cfg, params, rots)
+    if not res.ok or (found.best_s != 0.0 and found.gain >= dc.td.walk_gain):
+        # walked from where its batch was solved: an accepted window whose rotations hint
+        # at an offset (generated MH_05@80, seed 83, true -15 ms: -18.2 ms at gain 6.3;
+        # accepted at 0, then td re-anchoring restarted it), or one refused for a
+        # disagreement of its batch and alignment, which a wrong offset gives (V2_03@26,
+        # seed 65, true remainder 5 ms unseen: 4.9 degrees at 1.5 s; V2_03@29, seed 83,
+        # true 22 ms seen at 25.6 ms: 3.1 degrees; at the true offset both are accepted)
+        return _refine_td(win, res, res.batch.td_s, cam, cfg, params, rots)
     return res
 
 
