@@ -35,8 +35,10 @@ def _run(root, **calib):
 
 
 def test_td_reanchors_once_after_the_feedback_and_ends_near_the_truth(v2_td25, caplog):
+    """The initialization's window replayed at the sync layer's offset (as before
+    ``CalibConfig.td_init_retime``), so the first window holds the whole offset."""
     with caplog.at_level(logging.INFO, logger="vio.backend.td_reanchor"):
-        res, ate = _run(v2_td25)
+        res, ate = _run(v2_td25, td_init_retime=False)
     assert caplog.text.count("td re-anchored") == 1
     assert res.restarts == 0 and res.recoveries == 0
     assert abs(res.outputs[-1].td_s - 0.025) < 0.0008, res.outputs[-1].td_s
@@ -48,3 +50,14 @@ def test_td_reanchoring_off(v2_td25, caplog):
         res, _ = _run(v2_td25, td_reanchor_s=0.0)
     assert "td re-anchored" not in caplog.text
     assert abs(res.outputs[-1].td_s - 0.025) < 0.003
+
+
+def test_window_replayed_at_its_found_td_needs_no_reanchoring(v2_td25, caplog):
+    """The default: the window replayed at the offset the initialization found
+    (``vio.init_retime``) starts with the sync layer's offset near the truth."""
+    with caplog.at_level(logging.INFO, logger="vio.backend.td_reanchor"):
+        res, ate = _run(v2_td25)
+    assert "td re-anchored" not in caplog.text
+    assert res.restarts == 0 and res.recoveries == 0
+    assert abs(res.outputs[-1].td_s - 0.025) < 0.0008, res.outputs[-1].td_s
+    assert ate < 0.1, ate

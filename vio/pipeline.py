@@ -25,8 +25,10 @@ from vio.direct.config import DirectConfig
 from vio.errors import one_line
 from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
-from vio.imu import concat
-from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
+from vio.backend.td_init import shift_state
+from vio.imu import combined_params, concat
+from vio.init_retime import retime_packets, stitch
+from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 from vio.keyframes import KeyframePolicy, flow_px
 from vio.memory import trim_heap, tune_heap
 from vio.outputs import FrameOutput, InitInfo
@@ -105,6 +107,10 @@ class Pipeline:
         self.imu_dropped = 0
         self.frames_dropped = 0                          # images missing or unreadable
         self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
+        # (last frame time, IMU) of a window replayed at its found td (vio.init_retime)
+        self._stitch: tuple[int, ImuData] | None = None
+        # the packet stream's sync layer follows the estimator's td (vio.run.td_feedback)
+        self.td_fed_back = False
 
     # -------------------------------------------------------------- helpers
     def _window_imu(self):
@@ -142,6 +148,15 @@ class Pipeline:
             return []
         if self._held is not None:
             pkt, self._held = carry_imu(self._held, pkt), None
+        if self._stitch is not None:   # the first packet after a window replayed at its td
+            st = stitch(pkt, *self._stitch)
+            if st is None:
+                log.warning("t=%d ns: frame at or before the retimed initialization window's last "
+                            "frame: dropped, its IMU carries over to the next frame", pkt.t_ns)
+                self.frames_dropped += 1
+                self._held = pkt
+                return []
+            pkt, self._stitch = st, None
         ic = self.cfg.backend.init
         self._count_faults(pkt)
         self._recent.append(pkt)
@@ -289,9 +304,10 @@ class Pipeline:
 
     def _replay(self, state, t0: float) -> list[FrameOutput]:
         """Start at the buffer's first frame and replay the rest of the buffer."""
-        buf = self._init_buf
+        buf, now = self._init_buf, self._init_buf[-1]
         self._init_buf = []
-        if not self._start(state, buf[0], buf[-1]):
+        buf, state = self._at_found_td(buf, state)
+        if not self._start(state, buf[0], now):
             return []
         # the alignment's cost is charged to the window's first frame; the outputs leave after
         # the whole window is in, at the estimate it ended with (vio.window_outputs)
@@ -306,6 +322,26 @@ class Pipeline:
                 sink(out)
         return outs
 
+    def _at_found_td(self, buf: list[FramePacket], state) -> tuple[list[FramePacket], object]:
+        """A dynamic initialization's window and state moved to the td remainder it found
+        (``InitialState.td_s``; ``vio.init_retime``), when the sync layer takes that td
+        for the frames after it (``CalibConfig.td_init_retime``, ``td_feedback_at_init``);
+        else unchanged."""
+        cc = self.cfg.backend.calib
+        if not (state.td_s and state.method == "dynamic" and cc.td_init_retime
+                and cc.td_feedback_at_init and self.td_fed_back):
+            return buf, state
+        try:
+            moved, imu = retime_packets(buf, int(round(state.td_s * 1e9)),
+                                        int(round(self.cfg.imu_lookahead_s * 1e9)))
+        except ValueError as exc:
+            log.info("initialization window replayed at the sync layer's offset (%s)", exc)
+            return buf, state
+        params = combined_params(self.imu_calib, self.cfg.backend.imu)
+        T, v = shift_state(state.T_w_b, state.v_w, state.bias, imu, state.t_ns, moved[0].t_ns, params)
+        self._stitch = (moved[-1].t_ns, imu)
+        return moved, replace(state, t_ns=moved[0].t_ns, T_w_b=T, v_w=v)
+
     def _start(self, state, pkt: FramePacket, now: FramePacket) -> bool:
         """Initialize the estimator at ``pkt`` (decided at packet ``now``); False (and
         still uninitialized) if the solver refuses."""
@@ -319,7 +355,10 @@ class Pipeline:
         self._first_keyframe(pkt)
         self.n_keyframes = 1
         t_first = self._t_first if self._t_first is not None else pkt.t_ns
-        self.init_info = InitInfo(state.method, (now.t_ns - t_first) * 1e-9, (pkt.t_ns - t_first) * 1e-9,
+        # the first pose's time in the sync layer's clock at the start (a window replayed
+        # at its found td holds that td, vio.init_retime)
+        state_s = (pkt.t_ns - t_first) * 1e-9 - self.est.td_obs(pkt)
+        self.init_info = InitInfo(state.method, (now.t_ns - t_first) * 1e-9, state_s,
                                   state.td_s or 0.0, state.scale_sigma)
         log.info("%s initialization at t=%d: gyro bias %s", state.method, pkt.t_ns,
                  np.round(state.bias.gyroscope(), 4))
@@ -327,7 +366,7 @@ class Pipeline:
 
     def _first_keyframe(self, pkt: FramePacket) -> None:
         """The observations of the keyframe an estimator was just initialized at."""
-        self.est.rates.add_keyframe(0, pkt.t_ns, pkt.imu.gyro[-1])
+        self.est.first_keyframe(pkt)
         self.est.lm.observe(0, self._features(pkt))
         for src in self.est.sources:
             src.observe(0, pkt)

@@ -135,6 +135,7 @@ def td_feedback(pipe: Pipeline, cfg: PipelineConfig) -> Callable[[], float] | No
     if cfg.live or not (cc.estimate_td and cfg.backend.vision.use_td and cc.td_feedback_s > 0):
         return None
     applied, start = [float(cfg.td_s)], []
+    pipe.td_fed_back = True
 
     def source() -> float:
         if not pipe.est.initialized:

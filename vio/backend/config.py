@@ -183,7 +183,15 @@ class CalibConfig:
     24.58 -> 24.97 ms, 0.048 -> 0.047 m; the same excerpts synced 5 ms off from the start
     (no re-anchoring) give 24.93 and 24.83 ms. Only once the feedback has caught up with
     the estimate (else it restarted twice while the offset was still being stepped in).
-    0 turns it off."""
+    0 turns it off.
+
+    ``td_init_retime``: a dynamic initialization that found a td remainder (and aligned its
+    window there, ``vio.backend.td_init``) replays its window cut at that td, as a sync
+    layer told it would have cut it (``vio.init_retime``), when the sync layer takes the
+    initialization's td (``td_feedback_at_init``; feature and photometric modes): the
+    window's observations start with no remainder for the td factors, and the td
+    re-anchoring restart that followed every such start a second or two later is not
+    needed. Measured on generated mid-flight starts (``benchmarks/README.md``, stop 71)."""
 
     estimate_extrinsic: bool = False
     estimate_td: bool = True
@@ -195,6 +203,7 @@ class CalibConfig:
     td_feedback_step_s: float = 0.001
     td_feedback_after_s: float = 10.0
     td_feedback_at_init: bool = True
+    td_init_retime: bool = True
     td_reanchor_s: float = 0.005
     td_reanchor_sigma_s: float = 0.001
 

@@ -125,6 +125,14 @@ class Estimator(EstimatorOutputs):
         if state.method == "static":    # a still start: its images carry no timing information
             self.still_kf.add(0)
 
+    def first_keyframe(self, frame) -> None:
+        """Keyframe 0's time and raw gyro reading (``KeyframeRates``) from its packet
+        ``frame`` (``vio.sync.FramePacket``), with the td its time holds (:meth:`td_obs`:
+        non-zero for a window replayed at its found td, ``vio.init_retime``, or a
+        re-initialization after td feedback); td re-anchoring counts from there."""
+        self.rates.add_keyframe(0, frame.t_ns, frame.imu.gyro[-1], self.td_obs(frame))
+        self._td_anchor = self.rates.td_obs(0)
+
     def _restart(self, k: int, state: InitialState, T_b_c: gtsam.Pose3, td: float,
                  pose_sigmas: np.ndarray | None, init: InitConfig | None = None,
                  priors: gtsam.NonlinearFactorGraph | None = None) -> None:
