@@ -19,13 +19,18 @@ packet's time holds (``Estimator.td_obs``).
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Sequence
 
 import numpy as np
 
+from vio.backend.init import InitialState
+from vio.backend.td_init import shift_state
 from vio.imu import concat
 from vio.io.types import ImuData
 from vio.sync import FramePacket
+
+log = logging.getLogger(__name__)
 
 
 def joined_imu(packets: Sequence[FramePacket]) -> ImuData:
@@ -63,6 +68,23 @@ def retime_packets(packets: Sequence[FramePacket], delta_ns: int, lookahead_ns: 
         ahead = imu.segment(t, min(t + lookahead_ns, hi)) if p.imu_ahead is not None else None
         out.append(dataclasses.replace(p, t_ns=int(t), imu=seg, imu_ahead=ahead))
     return out, imu
+
+
+def replay_at_td(packets: list[FramePacket], state: InitialState, params, lookahead_ns: int
+                 ) -> tuple[list[FramePacket], InitialState, ImuData | None]:
+    """The window ``packets`` of a dynamic initialization whose ``state`` (at the first
+    packet's time, ``InitialState.td_s`` the remainder it was aligned at) moved to that
+    remainder: the packets cut again (:func:`retime_packets`), the state carried to the
+    moved first frame through the IMU at its bias (``params``: preintegration parameters),
+    and the window's joined IMU for :func:`stitch`. Unchanged, and None, when the packets
+    cannot be moved (logged)."""
+    try:
+        moved, imu = retime_packets(packets, int(round(state.td_s * 1e9)), lookahead_ns)
+    except ValueError as exc:
+        log.info("initialization window replayed at the sync layer's offset (%s)", exc)
+        return packets, state, None
+    T, v = shift_state(state.T_w_b, state.v_w, state.bias, imu, state.t_ns, moved[0].t_ns, params)
+    return moved, dataclasses.replace(state, t_ns=moved[0].t_ns, T_w_b=T, v_w=v), imu
 
 
 def stitch(pkt: FramePacket, t_prev_ns: int, imu: ImuData) -> FramePacket | None:

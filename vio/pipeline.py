@@ -25,9 +25,8 @@ from vio.direct.config import DirectConfig
 from vio.errors import one_line
 from vio.faults import ImuScreenConfig
 from vio.frontend.config import FrontendConfig
-from vio.backend.td_init import shift_state
 from vio.imu import combined_params, concat
-from vio.init_retime import retime_packets, stitch
+from vio.init_retime import replay_at_td, stitch
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib, ImuData
 from vio.keyframes import KeyframePolicy, flow_px
 from vio.memory import trim_heap, tune_heap
@@ -306,9 +305,10 @@ class Pipeline:
         """Start at the buffer's first frame and replay the rest of the buffer."""
         buf, now = self._init_buf, self._init_buf[-1]
         self._init_buf = []
-        buf, state = self._at_found_td(buf, state)
+        buf, state, joined = self._at_found_td(buf, state)
         if not self._start(state, buf[0], now):
             return []
+        self._stitch = None if joined is None else (buf[-1].t_ns, joined)
         # the alignment's cost is charged to the window's first frame; the outputs leave after
         # the whole window is in, at the estimate it ended with (vio.window_outputs)
         muted, self.muted = self.muted, True
@@ -322,25 +322,17 @@ class Pipeline:
                 sink(out)
         return outs
 
-    def _at_found_td(self, buf: list[FramePacket], state) -> tuple[list[FramePacket], object]:
+    def _at_found_td(self, buf: list[FramePacket], state) -> tuple[list[FramePacket], object, ImuData | None]:
         """A dynamic initialization's window and state moved to the td remainder it found
-        (``InitialState.td_s``; ``vio.init_retime``), when the sync layer takes that td
-        for the frames after it (``CalibConfig.td_init_retime``, ``td_feedback_at_init``);
-        else unchanged."""
+        (``vio.init_retime.replay_at_td``) when the sync layer takes that td for the frames
+        after it (``CalibConfig.td_init_retime``, ``td_feedback_at_init``), with the
+        window's joined IMU; else unchanged, and None."""
         cc = self.cfg.backend.calib
         if not (state.td_s and state.method == "dynamic" and cc.td_init_retime
                 and cc.td_feedback_at_init and self.td_fed_back):
-            return buf, state
-        try:
-            moved, imu = retime_packets(buf, int(round(state.td_s * 1e9)),
-                                        int(round(self.cfg.imu_lookahead_s * 1e9)))
-        except ValueError as exc:
-            log.info("initialization window replayed at the sync layer's offset (%s)", exc)
-            return buf, state
-        params = combined_params(self.imu_calib, self.cfg.backend.imu)
-        T, v = shift_state(state.T_w_b, state.v_w, state.bias, imu, state.t_ns, moved[0].t_ns, params)
-        self._stitch = (moved[-1].t_ns, imu)
-        return moved, replace(state, t_ns=moved[0].t_ns, T_w_b=T, v_w=v)
+            return buf, state, None
+        return replay_at_td(buf, state, combined_params(self.imu_calib, self.cfg.backend.imu),
+                            int(round(self.cfg.imu_lookahead_s * 1e9)))
 
     def _start(self, state, pkt: FramePacket, now: FramePacket) -> bool:
         """Initialize the estimator at ``pkt`` (decided at packet ``now``); False (and
