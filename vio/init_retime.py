@@ -46,9 +46,9 @@ def retime_packets(packets: Sequence[FramePacket], delta_ns: int, lookahead_ns: 
     ``delta_ns`` later in the IMU clock, their IMU re-cut from the joined stream (before
     the stream's first sample, its first reading held); a frame whose shifted time that
     stream does not cover (the last ones with ``delta_ns`` beyond the lookahead) keeps its
-    time, so every frame stays. Returns the packets and the joined stream (for :func:`stitch`). Raises
-    ``ValueError`` when the frame times would not increase (``|delta_ns|`` near a frame
-    interval) or a packet carries an IMU gap."""
+    time, so every frame stays. Returns the packets and the joined stream (for
+    :func:`stitch`). Raises ``ValueError`` when the frame times would not increase
+    (``|delta_ns|`` near a frame interval) or a packet carries an IMU gap."""
     if any(p.imu_gaps for p in packets[1:]):
         raise ValueError("an IMU gap inside the window")
     imu = joined_imu(packets)
