@@ -201,7 +201,7 @@ def test_shift_state_round_trip_and_motion(dt_ms):
 
 
 @pytest.mark.parametrize("bad", [{"wide_tol_factor": 0.5}, {"refused_try_gain": 10.0},
-                                 {"refused_try_gain": -1.0}])
+                                 {"refused_try_gain": -1.0}, {"walk_gain": 9.5}, {"walk_gain": -0.1}])
 def test_search_config_rejects_out_of_range_values(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         TdSearchConfig(**bad)

@@ -191,7 +191,11 @@ class CalibConfig:
     initialization's td (``td_feedback_at_init``; feature and photometric modes): the
     window's observations start with no remainder for the td factors, and the td
     re-anchoring restart that followed every such start a second or two later is not
-    needed. Measured on generated mid-flight starts (``benchmarks/README.md``, stop 71)."""
+    needed. Generated mid-flight starts (``benchmarks/bench_midflight.py``, 158 runs at
+    -30 to +30 ms; ``benchmarks/README.md``, stop 71): geometric mean 0.0925 -> 0.0893 % of
+    the path, 82 better and 44 worse, above 0.2 % 8 -> 6 (MH_04@65 at +30 ms, seed 81:
+    0.427 -> 0.216 %, told the true td 0.22 %; MH_04@40 at -30 ms, seed 80, 0.159 ->
+    0.232 %, where the restart had helped)."""
 
     estimate_extrinsic: bool = False
     estimate_td: bool = True
