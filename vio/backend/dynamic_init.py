@@ -232,12 +232,12 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
     found = search_td(win.imu_all, win.t_ns, rots, bg, dc.td)
     log.debug("td search: best %.1f ms, sigma %.1f ms, gain %.1f, %d of %d pairs", found.best_s * 1e3,
               found.sigma_s * 1e3, found.gain, found.n_inliers, found.n_pairs)
-    seen = found.best_s != 0.0 and found.gain >= dc.td.try_gain     # the rotations see an offset
+    seen = found.hints(dc.td.try_gain)     # the rotations see an offset
     if found.td_s != 0.0:
         res = _align_shifted(win, found.td_s, cam, cfg, params, rots)
     else:
         res = _align(win, cam, cfg, params, pims, rots, bg, agree)
-        if not res.ok and found.best_s != 0.0 and found.gain >= dc.td.refused_try_gain:
+        if not res.ok and found.hints(dc.td.refused_try_gain):
             # a weaker candidate: the alignment's own checks decide; accepted, it is walked
             # by the batch as a seen one
             alt = _align_shifted(win, found.best_s, cam, cfg, params, rots)
@@ -247,7 +247,7 @@ def align(win: InitWindow, cam: CameraCalib, imu_calib: ImuCalib, cfg: BackendCo
         return res
     if res.ok and seen:
         return _refine_td(win, res, found.best_s, cam, cfg, params, rots)
-    if not res.ok or (found.best_s != 0.0 and found.gain >= dc.td.walk_gain):
+    if not res.ok or found.hints(dc.td.walk_gain):
         # walked from where its batch was solved: an accepted window whose rotations hint
         # at an offset (generated MH_05@80, seed 83, true -15 ms: -18.2 ms at gain 6.3;
         # accepted at 0, then td re-anchoring restarted it), or one refused for a

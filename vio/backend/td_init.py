@@ -68,6 +68,11 @@ class TdSearch:
     n_pairs: int
     n_inliers: int
 
+    def hints(self, min_gain: float) -> bool:
+        """Whether the rotations point at a non-zero offset with a cost drop of at least
+        ``min_gain`` (``TdSearchConfig.try_gain``, ``refused_try_gain``, ``walk_gain``)."""
+        return self.best_s != 0.0 and self.gain >= min_gain
+
 
 @njit_inline
 def _exp_mul(A, phi, out):
