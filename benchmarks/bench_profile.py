@@ -11,7 +11,7 @@ initialization (``RunResult.frame_ms``), ATE, and, unless ``--no-profile``, the
 main process's time by stage:
 
 * ``front end wait``: the main process waiting for the worker (``select``);
-* ``initialization``: ``Pipeline._initialize`` without the frames it replays;
+* ``initialization``: ``vio.start.Start.initialize`` without the frames it replays;
 * ``IMU preintegration``: ``vio.imu.integrate`` and the per-frame IMU prediction;
 * ``factor construction``: ``LandmarkManager.prepare_update`` and the extra factor
   sources (the photometric points);
@@ -21,7 +21,7 @@ main process's time by stage:
   marginalization (cProfile cannot split the C++);
 * ``outlier check``: reprojection errors of every landmark after each update;
 * ``outlier update``: the second smoother update that removes rejected landmarks;
-* ``output``: ``Pipeline._emit`` (estimate, landmarks, sinks) and the run loop's bookkeeping.
+* ``output``: ``Pipeline.emit`` (estimate, landmarks, sinks) and the run loop's bookkeeping.
 
 cProfile slows Python-heavy code by ~1.5-2x: read the shares, not the absolute seconds,
 and time with ``--no-profile``.
@@ -49,7 +49,7 @@ one_blas_thread()   # before numpy loads, as `vio run` (vio.threads)
 # of its entries; entries nested in another stage's entry are subtracted there (below)
 STAGES = [
     ("front end wait", [("~", "<built-in method select.select>", "tot")]),
-    ("initialization", [("vio/pipeline.py", "_initialize", "cum")]),
+    ("initialization", [("vio/start.py", "initialize", "cum")]),
     ("IMU preintegration", [("vio/imu.py", "integrate", "cum"), ("vio/backend/estimator.py", "predict", "cum")]),
     ("factor construction", [("vio/backend/tracks.py", "prepare_update", "cum"),
                              ("vio/backend/bundles.py", "prepare_update", "cum"),
@@ -63,7 +63,7 @@ STAGES = [
     ("outlier check", [("vio/backend/tracks.py", "outlier_removals", "cum"),
                        ("vio/backend/bundles.py", "outlier_removals", "cum")]),
     ("outlier update", [("vio/backend/estimator.py", "_remove_outliers", "cum")]),
-    ("output", [("vio/pipeline.py", "_emit", "cum"), ("vio/backend/estimator.py", "window_poses", "cum")]),
+    ("output", [("vio/pipeline.py", "emit", "cum"), ("vio/backend/estimator.py", "window_poses", "cum")]),
 ]
 
 

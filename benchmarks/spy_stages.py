@@ -17,7 +17,7 @@ import argparse
 import collections
 
 STAGES = [  # (stage, marker on the stack); the first match wins
-    ("initialization", "_initialize ("),
+    ("initialization", "start.py:"),
     ("linearization callbacks (Python)", "error_func ("),
     ("factor construction: residual rows and td velocities", "track_rows ("),
     ("factor construction: landmark factors", "_factor ("),
@@ -31,7 +31,7 @@ STAGES = [  # (stage, marker on the stack); the first match wins
     ("IMU preintegration and prediction", "integrate"),
     ("IMU preintegration and prediction", "predict ("),
     ("front end: waiting for the worker", "select"),
-    ("output", "_emit ("),
+    ("output", ";emit ("),
     ("keyframe bookkeeping", "add_keyframe ("),
     ("start-up", "<module>"),
 ]

@@ -128,7 +128,7 @@ class ImageStage:
 
     def _decide(self, pkt: FramePacket, mono) -> bool:
         """The keyframe policy on this frame's tracks; ``pkt`` carries the IMU of its dropped
-        predecessors (``Pipeline._step``: a frame where the IMU resumes is one too)."""
+        predecessors (``Pipeline.step``: a frame where the IMU resumes is one too)."""
         kf = pkt.imu_resumed or self._policy.due(pkt.t_ns, mono.ids, mono.uv)
         if kf:
             self._policy.reset(pkt.t_ns, mono.ids, mono.uv)

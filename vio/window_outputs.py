@@ -2,7 +2,7 @@
 
 An initialization (dynamic, stereo) is decided at the end of a buffered window, then the
 window's frames are replayed through the estimator and all of them are output at once
-(``Pipeline._replay``). Replayed frame by frame, the first ones would carry the estimate of
+(``vio.start.Start._replay``). Replayed frame by frame, the first ones would carry the estimate of
 a window that had barely begun (the first keyframe alone, then two, ...), although no
 output leaves before the replay's end: real MH_01 mono had 18-19 mm of error at 0.5-1.5 s
 against 5-10 mm afterwards. Each window frame therefore gets the state the smoother holds
