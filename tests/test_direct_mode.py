@@ -97,12 +97,13 @@ def sim_exposure(tmp_path_factory):
 
 
 def _small(hybrid: bool) -> PipelineConfig:
-    """Half-resolution images: fewer candidates and active points."""
+    """Half-resolution images: fewer candidates and active points; no td pre-pass (the
+    renders here have td 0; ``tests/test_td_prepass.py`` runs it)."""
     cfg = default_config("hybrid" if hybrid else "direct")
     d = cfg.direct
     d = dataclasses.replace(d, select=dataclasses.replace(d.select, n_points=200, block=16),
                             points=dataclasses.replace(d.points, max_points=80 if hybrid else 100))
-    return dataclasses.replace(cfg, direct=d)
+    return dataclasses.replace(cfg, direct=d, td_prepass_s=0.0)
 
 
 class _SnapshotSink:

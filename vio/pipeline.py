@@ -48,9 +48,13 @@ class PipelineConfig:
     needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency.
     ``imu_screen``: IMU fault screening and gap detection in the sync layer (``vio.faults``).
     ``live``: the backend in its own process, each frame's pose from IMU propagation of
-    its newest state without waiting (``vio.live``; not deterministic; off by default)."""
+    its newest state without waiting (``vio.live``; not deterministic; off by default).
+    ``td_prepass_s`` > 0 (the photometric modes' default, ``vio.modes``): a ``direct`` or
+    ``hybrid`` run first runs ``stereo`` mode over that many seconds of the data and
+    starts with the sync layer at its td estimate (``vio.td_prepass``)."""
 
     td_s: float = 0.0
+    td_prepass_s: float = 0.0
     live: bool = False
     imu_lookahead_s: float = 0.02
     imu_screen: ImuScreenConfig = field(default_factory=ImuScreenConfig)

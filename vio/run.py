@@ -22,6 +22,7 @@ from vio import overlap
 from vio.modes import KLT_WORKER_MODES, MODE_DEFAULTS, merged
 from vio.pipeline import FrameOutput, InitInfo, Pipeline, PipelineConfig
 from vio.sync import FramePacket, packets
+from vio.td_prepass import prepass_td
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +215,9 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     modes). ``cfg`` None: ``default_config(mode)``."""
     mode = resolve_mode(data, mode)
     cfg = default_config(mode) if cfg is None else cfg
+    if mode in PHOTOMETRIC_MODES and cfg.td_prepass_s > 0 and not cfg.live:
+        td = prepass_td(data, cfg, default_config("stereo"), max_frames, run_dataset)
+        cfg = cfg if td is None else dataclasses.replace(cfg, td_s=td)
     cam1 = data.cam1.calib if mode in STEREO_MODES else None
     stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
     if mode in STEREO_MODES:

@@ -108,8 +108,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     for line in summary(res, data, getattr(args, "segments", None)):
         print(line)
     if mode in PHOTOMETRIC_MODES and not cfg.direct.points.exposure_td:
-        print("td note         the photometric term holds td at the sync layer's value (--td); to "
-              "estimate it: --config examples/photometric_td.yaml")
+        where = (f"its stereo pre-pass's estimate over the first {cfg.td_prepass_s:g} s" if cfg.td_prepass_s > 0
+                 else "--td")
+        print(f"td note         the photometric term holds td at the sync layer's value ({where}); to "
+              "estimate it in the photometric factors: --config examples/photometric_td.yaml")
     note = td_hint(res, cfg.td_s, mode)
     if note is not None:
         print(note)
