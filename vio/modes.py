@@ -227,14 +227,14 @@ MODE_DEFAULTS["mono"]["backend"]["keyframe"]["min_parallax_px"] = 30.0
 MODE_DEFAULTS["mono"]["backend"]["gauge"] = {"position_m": 0.05}
 
 # direct and hybrid: td from a stereo pre-pass over the first 6 s (vio.td_prepass). The
-# photometric term holds td at the sync layer's value; hybrid ATE default -> pre-pass, mm:
-# real MH_01 (td 0.48 ms found) 4.6 -> 4.7, its stamps moved by -20 / +12 / +25 ms 6.4 / 8.5 /
-# 14.3 -> 5.3 / 5.0 / 4.9; renders sim11 (10 ms) 9.1 -> 2.6, sim14 (0) 3.7 -> 4.2, unseen
-# renders (seeds 7201-7207; constant velocity at 8 / 8 / 0 / 15 ms, loops at -10 / 5 / 0 ms)
-# 2.4 / 3.8 / 2.5 / 6.1 / 13.6 / 4.6 / 5.3 -> 2.3 / 2.9 / 2.4 / 2.2 / 3.2 / 2.2 / 5.1; direct
-# 4.8 / 6.2 / 8.1 / 13.7 -> 4.7 / 4.7 / 4.7 / 4.8 on real MH_01 and its copies, the renders
-# 6.3 / 2.8 / 4.3 / 4.1 / 2.4 / 1.8 / 4.8 / 3.3 / 4.4 -> 1.8 / 2.9 / 3.6 / 3.8 / 2.4 / 1.6 /
-# 1.9 / 1.2 / 4.4 (benchmarks/README.md, stop 72)
+# photometric term holds td at the sync layer's value; ATE default -> pre-pass, mm, hybrid:
+# real MH_01 (td 0.46 ms found) 4.6 -> 4.6, its stamps moved by -20 / +12 / +25 ms 6.4 / 8.5 /
+# 14.3 -> 4.6 / 4.4 / 4.9; renders sim11 (10 ms) 9.1 -> 1.6, sim14 (0) 3.7 -> 4.1, unseen renders
+# (seeds 7201-7207; constant velocity at 8 / 8 / 0 / 15 ms, loops at -10 / 5 / 0 ms) 2.4 / 3.8 /
+# 2.5 / 6.1 / 13.6 / 4.6 / 5.3 -> 2.4 / 2.7 / 3.1 / 2.4 / 2.3 / 2.2 / 4.8; direct: real MH_01 and
+# its copies 4.8 / 6.2 / 8.1 / 13.7 -> 4.7 / 4.7 / 4.7 / 4.8, sim11 / sim14 6.3 / 2.8 -> 1.8 /
+# 2.9, the unseen renders 4.3 / 4.1 / 2.4 / 1.8 / 4.8 / 3.3 / 4.4 -> 3.6 / 3.8 / 2.4 / 1.6 /
+# 1.9 / 1.2 / 4.4. ~1.9 s more whole process on real MH_01 (benchmarks/README.md, stop 72)
 for _mode in ("direct", "hybrid"):
     MODE_DEFAULTS[_mode]["td_prepass_s"] = 6.0
 

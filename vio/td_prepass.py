@@ -5,13 +5,13 @@ The photometric term takes each image as taken at its keyframe's time, so in ``d
 and ``hybrid`` mode td stays where the sync layer puts it: hybrid's KLT landmarks carry
 td, but thousands of photometric residuals at the keyframe times pin it there (renders
 with td 8 / 10 ms: hybrid's estimate -0.18 / 0.16 ms). Estimating td inside the
-photometric factors (``direct.points.exposure_td``) is fragile (renders 2.1-8.7 mm for
-2.4-5.3 mm held at a wrong td, benchmarks/README.md stop 72). The KLT stereo front end
-and its td factors estimate td within ~0.5 ms in the first seconds, so these modes first
-run ``stereo`` mode over the first ``td_prepass_s`` of the data and then start with the
-sync layer at its estimate, as ``--td`` would (real MH_01 with its camera stamps moved by
--20 / +12 / +25 ms: hybrid 6.4 / 8.5 / 14.3 -> 5.3 / 5.0 / 4.9 mm; unmoved 4.6 -> 4.7
-mm).
+photometric factors (``direct.points.exposure_td``) is fragile: on seven unseen renders
+hybrid gave 2.1-8.7 mm, worse than with td held at 0 on four (benchmarks/README.md, stop
+72). The KLT stereo front end and its td factors estimate td within ~0.6 ms in the first
+seconds, so these modes first run ``stereo`` mode over the first ``td_prepass_s`` of the
+data and then start with the sync layer at its estimate, as ``--td`` would (real MH_01
+with its camera stamps moved by -20 / +12 / +25 ms: hybrid 6.4 / 8.5 / 14.3 -> 4.6 / 4.4 /
+4.9 mm; unmoved 4.6 mm either way).
 """
 
 from __future__ import annotations
