@@ -37,6 +37,18 @@ def test_packets_tile_the_imu_axis_with_exact_endpoints():
     assert pk[3].imu.accel[-1, 0] == pytest.approx(expect, abs=1e-12)
 
 
+def test_frames_a_td_moves_past_the_imu_are_skipped_with_a_warning(caplog):
+    """A td that puts the last frames after the last IMU sample (the photometric modes'
+    pre-pass, td feedback): those frames are not served, and each is named in a warning."""
+    import logging
+    imu = _imu()                                   # 1.0 .. 1.5 s
+    stamps = np.array([1_000_000_000 + k * 50_000_000 for k in range(11)])   # .. 1.5 s
+    with caplog.at_level(logging.WARNING, logger="vio.sync"):
+        pk = list(packets(imu, stamps, td_s=0.03))
+    assert len(pk) == 10 and pk[-1].stamp_ns == stamps[-2]
+    assert f"frame {stamps[-1]}: IMU ended before" in caplog.text and "not processed" in caplog.text
+
+
 def test_push_api_waiting_then_ready_and_dropped():
     imu = _imu(21)
     sync = Synchronizer()
