@@ -54,8 +54,10 @@ def prepass_td(data: EurocDataset, cfg: PipelineConfig, stereo: PipelineConfig, 
     res = run(data, prepass_config(cfg, stereo), max_frames=n, mode="stereo")
     span = (res.outputs[-1].t_ns - res.outputs[0].t_ns) * 1e-9 if res.outputs else 0.0
     if span < 0.5 * cfg.td_prepass_s:
-        log.warning("td pre-pass: stereo mode over the first %.1f s posed only %.1f s of it; td stays "
-                    "at the sync layer's %.2f ms", cfg.td_prepass_s, span, cfg.td_s * 1e3)
+        have = (t[n - 1] - t[0]) * 1e-9
+        log.warning("td pre-pass: stereo mode posed %.1f s of the first %.1f s of frames (td needs %.1f s "
+                    "posed); td stays at the sync layer's %.2f ms", span, have, 0.5 * cfg.td_prepass_s,
+                    cfg.td_s * 1e3)
         return None
     td = float(res.outputs[-1].td_s)
     log.info("td pre-pass: stereo mode over the first %.1f s estimates td %.2f ms; the photometric "
