@@ -154,9 +154,12 @@ def run_job(job: dict, timeout_s: float = 1800.0) -> dict:
             tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
             return {"error": f"exit {proc.returncode}: " + " | ".join(tail)}
         # 1-min load average before and after: the machine may be shared. process_s: from the
-        # spawn to the run's last output (interpreter, imports, data, start-up and the run)
+        # spawn to the run's last output (interpreter, imports, data, start-up and the run;
+        # None for jobs that report no output time, the memory soak)
         out = json.loads(Path(job["result"]).read_text())
-        return {**out, "load_1m": [load0, os.getloadavg()[0]], "process_s": out["t_done"] - t_spawn}
+        done = out.get("t_done")
+        return {**out, "load_1m": [load0, os.getloadavg()[0]],
+                "process_s": None if done is None else done - t_spawn}
 
 
 def main(argv: list[str] | None = None) -> int:
