@@ -44,7 +44,7 @@ def test_real_v1_01_tracks_end_to_end(v101):
     """Real IMU + real EqVIO tracks (22 per frame): ATE 0.027 m measured; bound 0.04 m."""
     res = run_dataset(v101, PipelineConfig())
     assert res.recoveries == 0
-    # a still start: the static window's frames get the initial pose (Pipeline._still_window)
+    # a still start: the static window's frames get the initial pose (vio.start.Start._still_window)
     assert len(res.outputs) == res.frames_in and res.init.method == "static" and res.init.state_s == 0.0
     window = [o for o in res.outputs if o.t_ns < res.outputs[0].t_ns + 500_000_000]
     assert len(window) == 10 and all(o.still for o in window)
