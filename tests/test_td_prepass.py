@@ -63,23 +63,23 @@ def _fake(t_first_pose_s: float, t_last_pose_s: float, td_s: float):
 
 
 def test_prepass_runs_stereo_over_the_first_seconds_and_takes_its_td():
-    data = SimpleNamespace(cam0=SimpleNamespace(t_ns=np.arange(0, 20_000_000_000, 50_000_000)))  # 20 Hz, 20 s
+    t = np.arange(0, 20_000_000_000, 50_000_000)      # 20 Hz, 20 s
     run, calls = _fake(0.5, 6.0, 0.0117)
-    assert prepass_td(data, _cfg(td_prepass_s=6.0), default_config("stereo"), None, run) == 0.0117
+    assert prepass_td(None, _cfg(td_prepass_s=6.0), default_config("stereo"), t, run) == 0.0117
     cfg, n, mode = calls[0]
     assert mode == "stereo" and n == 121 and cfg.td_prepass_s == 0.0     # frames at 0, 0.05, ..., 6.0 s
-    prepass_td(data, _cfg(td_prepass_s=6.0), default_config("stereo"), 40, run)
+    prepass_td(None, _cfg(td_prepass_s=6.0), default_config("stereo"), t[:40], run)
     assert calls[1][1] == 40                                               # never past --max-frames
 
 
 def test_prepass_that_posed_too_little_keeps_the_sync_layers_td(caplog):
-    data = SimpleNamespace(cam0=SimpleNamespace(t_ns=np.arange(0, 20_000_000_000, 50_000_000)))
+    t = np.arange(0, 20_000_000_000, 50_000_000)
     run, _ = _fake(4.0, 6.0, 0.03)
     with caplog.at_level(logging.WARNING, logger="vio.td_prepass"):
-        assert prepass_td(data, _cfg(td_prepass_s=6.0, td_s=0.002), default_config("stereo"), None, run) is None
+        assert prepass_td(None, _cfg(td_prepass_s=6.0, td_s=0.002), default_config("stereo"), t, run) is None
     assert "posed 2.0 s of the first 6.0 s" in caplog.text and "2.00 ms" in caplog.text
     empty = lambda *a, **k: RunResult()   # noqa: E731  (never initialized)
-    assert prepass_td(data, _cfg(td_prepass_s=6.0), default_config("stereo"), None, empty) is None
+    assert prepass_td(None, _cfg(td_prepass_s=6.0), default_config("stereo"), t, empty) is None
 
 
 @pytest.mark.slow

@@ -215,11 +215,11 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     modes). ``cfg`` None: ``default_config(mode)``."""
     mode = resolve_mode(data, mode)
     cfg = default_config(mode) if cfg is None else cfg
+    stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
     if mode in PHOTOMETRIC_MODES and cfg.td_prepass_s > 0 and not cfg.live:
-        td = prepass_td(data, cfg, default_config("stereo"), max_frames, run_dataset)
+        td = prepass_td(data, cfg, default_config("stereo"), stamps, run_dataset)
         cfg = cfg if td is None else dataclasses.replace(cfg, td_s=td)
     cam1 = data.cam1.calib if mode in STEREO_MODES else None
-    stamps = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
     if mode in STEREO_MODES:
         stamps = stereo_stamps(data, stamps)
     early = _early_stream(data, cfg, mode, stamps)

@@ -269,8 +269,9 @@ def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
             rate_hz: float | None = None, accel_range: float = math.inf,
             gyro_range: float = math.inf,
             td_source: Callable[[], float] | None = None) -> Iterator[FramePacket]:
-    """Iterate a recorded dataset as packets (frames the applied td moves outside the IMU
-    stream are skipped, each with a warning).
+    """Iterate a recorded dataset as packets (frames the sync layer cannot serve, which the
+    applied td moved outside the IMU stream or to before the previous frame, are skipped,
+    each with a warning).
 
     ``features[k]`` / ``image_files[k]`` belong to ``frame_stamps[k]``. ``screen``,
     ``rate_hz`` (nominal IMU rate, ``sensor.yaml``), ``accel_range`` / ``gyro_range``:
@@ -293,5 +294,5 @@ def packets(imu: ImuData, frame_stamps: np.ndarray, td_s: float = 0.0,
         res = sync.poll()
         if res.status is SyncStatus.READY:
             yield res.packet
-        elif res.status is SyncStatus.DROPPED:   # moved by td outside the IMU stream
+        elif res.status is SyncStatus.DROPPED:   # its reason says where td moved it
             log.warning("%s: not processed", res.reason)

@@ -41,13 +41,12 @@ def prepass_config(cfg: PipelineConfig, stereo: PipelineConfig) -> PipelineConfi
                                backend=backend, frontend=frontend)
 
 
-def prepass_td(data: EurocDataset, cfg: PipelineConfig, stereo: PipelineConfig, max_frames: int | None,
+def prepass_td(data: EurocDataset, cfg: PipelineConfig, stereo: PipelineConfig, t: np.ndarray,
                run: Callable) -> float | None:
     """td (s, the sync layer's offset plus the estimate) from ``run`` (``vio.run.run_dataset``)
-    in stereo mode over the cam0 frames of the first ``cfg.td_prepass_s`` seconds (at most
-    ``max_frames``); None, with a warning, when that run has no pose for at least half of
-    that time (the pre-pass did not initialize early enough to estimate td)."""
-    t = data.cam0.t_ns[:max_frames] if max_frames else data.cam0.t_ns
+    in stereo mode over the cam0 frames of the first ``cfg.td_prepass_s`` seconds of ``t``
+    (the run's cam0 stamps, ns); None, with a warning, when that run has no pose for at
+    least half of that time (the pre-pass did not initialize early enough to estimate td)."""
     if len(t) < 2:
         return None
     n = int(np.searchsorted(t, t[0] + int(cfg.td_prepass_s * 1e9), side="right"))
