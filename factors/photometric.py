@@ -28,6 +28,12 @@ Unit. The Jacobians are exact for the raw residual; the weights are constants of
 linearization, so GTSAM's error is the IRLS surrogate 0.5 sum W w_huber r^2. Pass
 V > 0 only when rho is *not* a variable (tracking), or its uncertainty counts twice.
 
+Rolling shutter (``Shutter``, seed 004's row time): row y is exposed y * line_time after
+row 0, the state's time; to first order in that time the host point is moved back to its
+row 0 along the host camera's twist (``host_points``) and the target image is sampled at
+q_s = q - s (omega_j x q + rho v_j), s = line_time * row(q); the Jacobians carry the chain
+rule through q_s and s (the shared suite checks them on a 48-ms readout).
+
 Invalid rows (target pixel outside the image, q_z <= 1e-6, host pattern pixel outside
 its image) give zero residual and zero Jacobian rows; nothing here raises for them.
 
@@ -166,21 +172,79 @@ def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class Shutter:
+    """Rolling shutter of one photometric term (seed 004's row time, to first order in it):
+    row y of an image is exposed ``y * line_time_s`` after its row 0, whose time is the
+    frame's state time, and over the readout each camera moves along a constant twist
+    ``[omega (rad/s), v (m/s)]`` (6,) in its own frame, so a point p_c of the row-0 camera
+    is at p_c - s (omega x p_c + v) in the camera of the row exposed s later.
+    ``host``, ``target``: the two cameras' twists (constants of the factor, as the KLT
+    factors' predicted image velocities). The host's whole pattern takes its centre row's
+    time (``HostPatch.uv``; 2 rows are ~60 us); the target row is the projected row."""
+
+    line_time_s: float
+    host: np.ndarray
+    target: np.ndarray
+
+
+def host_points(host: HostPatch, rho: np.ndarray, shutter: Shutter | None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The scaled host points rho p_ci (N, P, 3) in the row-0 host camera and their
+    derivative in rho (N, 1, 3): the bearing f without a shutter; with one, the point seen
+    at row time s_h moved back to row 0, f + s_h (omega_h x f) + rho s_h v_h."""
+    if shutter is None or shutter.line_time_s == 0.0:
+        return host.bearing, np.zeros((len(rho), 1, 3))
+    s_h = shutter.line_time_s * host.uv[:, 1][:, None, None]
+    w, v = np.asarray(shutter.host[:3], float), np.asarray(shutter.host[3:], float)
+    sv = s_h * v
+    f = host.bearing + s_h * _cross(np.broadcast_to(w, host.bearing.shape), host.bearing,
+                                    np.empty(host.bearing.shape))
+    return f + rho[:, None, None] * sv, sv
+
+
 def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pinhole,
-          target: ImageSampler):
-    """Scaled warp q, target pixel, intensity and dr/dq (N, P, 3) (zero where invalid)."""
-    q = host.bearing @ R.T + rho[:, None, None] * t
+          target: ImageSampler, shutter: Shutter | None = None):
+    """Scaled warp: (q (N, P, 3), target pixels, intensity, dr/dq (N, P, 3), valid,
+    dr/drho (N, P), host points ``host_points``), zero where invalid. q = R f + rho t is
+    the point in the row-0 target camera; with a ``shutter`` the image is sampled at
+    q_s = q - s (omega_j x q + rho v_j), s = line_time * (row of q), and dr/dq is the
+    chain rule through q_s and s."""
+    f, sv = host_points(host, rho, shutter)
+    rr = rho[:, None, None]
+    q = f @ R.T + rr * t
     z = q[..., 2]
     front = z > MIN_Z
     zs = np.where(front, z, 1.0)
-    u = K.fx * q[..., 0] / zs + K.cx
-    v = K.fy * q[..., 1] / zs + K.cy
-    I, gx, gy, inside = target.sample(u, v)
+    rolling = shutter is not None and shutter.line_time_s != 0.0
+    if rolling:
+        w, v = np.asarray(shutter.target[:3], float), np.asarray(shutter.target[3:], float)
+        s = (shutter.line_time_s * (K.fy * q[..., 1] / zs + K.cy))[..., None]
+        a = _cross(np.broadcast_to(w, q.shape), q, np.empty(q.shape)) + rr * v
+        qs = q - s * a
+        front &= qs[..., 2] > MIN_Z
+        zs = np.where(front, qs[..., 2], 1.0)
+    else:
+        qs = q
+    u = K.fx * qs[..., 0] / zs + K.cx
+    v_px = K.fy * qs[..., 1] / zs + K.cy
+    I, gx, gy, inside = target.sample(u, v_px)
     valid = front & inside & host.valid
     gu = np.where(valid, gx * K.fx / zs, 0.0)
     gv = np.where(valid, gy * K.fy / zs, 0.0)
-    drdq = np.stack([gu, gv, -(gu * q[..., 0] + gv * q[..., 1]) / zs], axis=-1)
-    return q, np.stack([u, v], -1), I, drdq, valid
+    drdq = np.stack([gu, gv, -(gu * qs[..., 0] + gv * qs[..., 1]) / zs], axis=-1)
+    drdrho = drdq @ t
+    if rolling:
+        # dq_s/dq = I - s [omega]x - a (ds/dq)^T, ds/dq = line_time fy [0, 1/z, -y/z^2]
+        zq = np.where(valid, z, 1.0)
+        da = np.sum(drdq * a, -1)
+        drdrho = -s[..., 0] * (drdq @ v)
+        drdq = drdq - s * _cross(drdq, np.broadcast_to(w, q.shape), np.empty(q.shape))
+        k = shutter.line_time_s * K.fy / zq
+        drdq[..., 1] -= da * k
+        drdq[..., 2] += da * k * q[..., 1] / zq
+        drdrho = drdrho + drdq @ t + np.sum((drdq @ R) * sv, -1)
+    return q, np.stack([u, v_px], -1), I, drdq, valid, drdrho, f
 
 
 def _affine(host: HostPatch, I: np.ndarray, valid: np.ndarray, ab_i: np.ndarray,
@@ -197,14 +261,16 @@ def _affine(host: HostPatch, I: np.ndarray, valid: np.ndarray, ab_i: np.ndarray,
 
 def temporal_eval(T_w_bi: gtsam.Pose3, T_w_bj: gtsam.Pose3, rho: np.ndarray, ab_i: np.ndarray,
                   ab_j: np.ndarray, host: HostPatch, target: ImageSampler, K_j: Pinhole,
-                  T_b_c: gtsam.Pose3, exposure_ratio: float = 1.0) -> PhotoEval:
-    """Temporal residual (host keyframe i -> target frame j) of N points, rho (N,)."""
+                  T_b_c: gtsam.Pose3, exposure_ratio: float = 1.0,
+                  shutter: Shutter | None = None) -> PhotoEval:
+    """Temporal residual (host keyframe i -> target frame j) of N points, rho (N,);
+    ``shutter``: both images' rolling shutter (cam0 twists of frames i and j)."""
     rho = np.asarray(rho, dtype=np.float64).reshape(-1)
     T_bj_bi = T_w_bj.between(T_w_bi)
     T_ji = T_b_c.inverse().compose(T_bj_bi).compose(T_b_c)
     R_ji, t_ji = T_ji.rotation().matrix(), T_ji.translation()
     R_b_c, t_b_c = T_b_c.rotation().matrix(), T_b_c.translation()
-    q, uv, I, drdq, valid = _warp(host, rho, R_ji, t_ji, K_j, target)
+    q, uv, I, drdq, valid, dr_drho, f = _warp(host, rho, R_ji, t_ji, K_j, target, shutter)
     r, J_ab_i, J_ab_j = _affine(host, I, valid, np.asarray(ab_i, float),
                                 np.asarray(ab_j, float), exposure_ratio)
     rr = rho[:, None, None]
@@ -214,28 +280,28 @@ def temporal_eval(T_w_bi: gtsam.Pose3, T_w_bj: gtsam.Pose3, rho: np.ndarray, ab_
     _cross(g_b, q_bj, J_pj[..., :3])
     np.multiply(-rr, g_b, out=J_pj[..., 3:])
     h = g_b @ T_bj_bi.rotation().matrix()      # dr/dq R_c_b R_bj_bi
-    q_bi = host.bearing @ R_b_c.T + rr * t_b_c
+    q_bi = f @ R_b_c.T + rr * t_b_c
     J_pi = np.empty(r.shape + (6,))
     _cross(q_bi, h, J_pi[..., :3])             # -(h x q_bi)
     np.multiply(rr, h, out=J_pi[..., 3:])
-    dr_drho = drdq @ t_ji
     J = {"pose_i": J_pi, "pose_j": J_pj, "rho": dr_drho[..., None],
          "ab_i": J_ab_i, "ab_j": J_ab_j}
     return PhotoEval(r, valid, J, dr_drho, uv)
 
 
 def stereo_eval(rho: np.ndarray, ab: np.ndarray, host: HostPatch, target: ImageSampler,
-                K_r: Pinhole, T_r_l: gtsam.Pose3, exposure_ratio: float = 1.0) -> PhotoEval:
+                K_r: Pinhole, T_r_l: gtsam.Pose3, exposure_ratio: float = 1.0,
+                shutter: Shutter | None = None) -> PhotoEval:
     """Static stereo residual (left host -> right target at one time), rho (N,).
 
     ``ab`` = [a, b] of the right image relative to the left (left affine is [0, 0]);
-    ``T_r_l`` = T_c1_c0 is a fixed constant.
+    ``T_r_l`` = T_c1_c0 is a fixed constant; ``shutter``: the left (host) and right
+    (target) cameras' twists of the one frame.
     """
     rho = np.asarray(rho, dtype=np.float64).reshape(-1)
     R, t = T_r_l.rotation().matrix(), T_r_l.translation()
-    _, uv, I, drdq, valid = _warp(host, rho, R, t, K_r, target)
+    _, uv, I, drdq, valid, dr_drho, _ = _warp(host, rho, R, t, K_r, target, shutter)
     r, _, J_ab = _affine(host, I, valid, np.zeros(2), np.asarray(ab, float), exposure_ratio)
-    dr_drho = drdq @ t
     return PhotoEval(r, valid, {"rho": dr_drho[..., None], "ab": J_ab}, dr_drho, uv)
 
 
@@ -260,7 +326,8 @@ def _rows(ev: PhotoEval, sw: np.ndarray, names: Sequence[str]) -> tuple[np.ndarr
 
 
 def temporal_residual_fn(host: HostPatch, target: ImageSampler, K_j: Pinhole, T_b_c: gtsam.Pose3,
-                         params: PhotometricParams, idepth_var: float = 0.0) -> Callable:
+                         params: PhotometricParams, idepth_var: float = 0.0,
+                         shutter: Shutter | None = None) -> Callable:
     """The residual function of a temporal factor over keys
     ``[T_w_bi (pose3), T_w_bj (pose3), rho (1), ab_i (2), ab_j (2)]`` (``factors.adapter``
     convention), for a single point (``len(host) == 1``): 8 weighted rows."""
@@ -271,21 +338,22 @@ def temporal_residual_fn(host: HostPatch, target: ImageSampler, K_j: Pinhole, T_
     def fn(args: list) -> tuple[np.ndarray, list]:
         T_i, T_j, rho, ab_i, ab_j = args
         ev = temporal_eval(T_i, T_j, rho, ab_i, ab_j, host, target, K_j, T_b_c,
-                           params.exposure_ratio)
+                           params.exposure_ratio, shutter)
         return _rows(ev, sqrt_weights(ev, host, params, idepth_var), names)
 
     return fn
 
 
 def stereo_residual_fn(host: HostPatch, target: ImageSampler, K_r: Pinhole, T_r_l: gtsam.Pose3,
-                       params: PhotometricParams, idepth_var: float = 0.0) -> Callable:
+                       params: PhotometricParams, idepth_var: float = 0.0,
+                       shutter: Shutter | None = None) -> Callable:
     """Residual function of a static stereo factor over keys ``[rho (1), ab_r (2)]``."""
     if len(host) != 1:
         raise ValueError(f"one factor per point: host patch has {len(host)} points")
 
     def fn(args: list) -> tuple[np.ndarray, list]:
         rho, ab = args
-        ev = stereo_eval(rho, ab, host, target, K_r, T_r_l, params.exposure_ratio)
+        ev = stereo_eval(rho, ab, host, target, K_r, T_r_l, params.exposure_ratio, shutter)
         return _rows(ev, sqrt_weights(ev, host, params, idepth_var), ("rho", "ab"))
 
     return fn
@@ -293,11 +361,11 @@ def stereo_residual_fn(host: HostPatch, target: ImageSampler, K_r: Pinhole, T_r_
 
 def temporal_factor(keys: Sequence[int], host: HostPatch, target: ImageSampler, K_j: Pinhole,
                     T_b_c: gtsam.Pose3, params: PhotometricParams = PhotometricParams(),
-                    idepth_var: float = 0.0, health: FactorHealth | None = None
-                    ) -> gtsam.CustomFactor:
+                    idepth_var: float = 0.0, health: FactorHealth | None = None,
+                    shutter: Shutter | None = None) -> gtsam.CustomFactor:
     """Temporal photometric factor of one point; keys = (T_w_bi, T_w_bj, rho, ab_i, ab_j),
     host and target keyframes distinct. Unit noise model: weights are inside (module doc)."""
-    fn = temporal_residual_fn(host, target, K_j, T_b_c, params, idepth_var)
+    fn = temporal_residual_fn(host, target, K_j, T_b_c, params, idepth_var, shutter)
     m = host.bearing.shape[1]
     return custom_factor(gtsam.noiseModel.Unit.Create(m), keys, ["pose3", "pose3", 1, 2, 2],
                          fn, health)
@@ -305,10 +373,10 @@ def temporal_factor(keys: Sequence[int], host: HostPatch, target: ImageSampler, 
 
 def stereo_factor(keys: Sequence[int], host: HostPatch, target: ImageSampler, K_r: Pinhole,
                   T_r_l: gtsam.Pose3, params: PhotometricParams = PhotometricParams(),
-                  idepth_var: float = 0.0, health: FactorHealth | None = None
-                  ) -> gtsam.CustomFactor:
+                  idepth_var: float = 0.0, health: FactorHealth | None = None,
+                  shutter: Shutter | None = None) -> gtsam.CustomFactor:
     """Static stereo factor of one point; keys = (rho, ab_right). Set ``params.weight`` to
     lambda for E = E_d + lambda E_s."""
-    fn = stereo_residual_fn(host, target, K_r, T_r_l, params, idepth_var)
+    fn = stereo_residual_fn(host, target, K_r, T_r_l, params, idepth_var, shutter)
     m = host.bearing.shape[1]
     return custom_factor(gtsam.noiseModel.Unit.Create(m), keys, [1, 2], fn, health)

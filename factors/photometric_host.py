@@ -18,6 +18,10 @@ Huber) energy at the linearization point. Residual dimension 8 (M + 1) + 1; Unit
 factor has no gauge of its own (the reduced H is singular along the global pose,
 affine and, without the stereo term, scale directions): eps regularizes them.
 
+With a rolling shutter (``HostShutter``) each image row is exposed at its own time and
+the host points and targets move along their cameras' twists over the readout
+(``factors.photometric.Shutter``); the keys and the square-root form stay the same.
+
 Weights as ``factors.photometric`` with V = 0 (rho is estimated): temporal
 w = c^2 / (c^2 + |grad I_host|^2) / (2 sigma_I^2), stereo the same times lambda,
 Huber on sqrt(w) r. The right image's affine ``ab_right`` is a constant of the host.
@@ -35,7 +39,8 @@ import numpy as np
 from factors.adapter import FactorHealth, custom_factor
 from factors.photometric import HostPatch, PhotometricParams, Pinhole
 from factors.jit import njit as _njit
-from factors.photometric_kernel import DARK, SATURATED, host_system
+from factors.photometric_kernel import host_system
+from factors.photometric_warp import DARK, SATURATED
 
 try:
     from numba.typed import List
@@ -98,6 +103,37 @@ class HostPoints:
 
 
 @dataclass(frozen=True, eq=False)
+class HostShutter:
+    """The rolling shutter of a host factor's images (``factors.photometric.Shutter`` per
+    pair): ``line_time_s`` s per row and the cam0 twists [omega (rad/s), v (m/s)] in the
+    camera frame, ``twists`` (M + 1, 6), host first, then the targets in key order; the
+    right camera's is the host's moved by T_c1_c0. Constants of the factor, as
+    ``HostTiming``'s."""
+
+    line_time_s: float
+    twists: np.ndarray
+
+
+def shutter_args(shutter: HostShutter | None, bearing: np.ndarray, uv: np.ndarray, M: int,
+                 T_r_l: gtsam.Pose3) -> tuple:
+    """The kernel's rolling-shutter arguments (bearing', sv, TW, TV, rw, rv, lt): the host
+    bearings moved to row 0 without their rho part, and that part ``sv`` (N, 3)
+    (``factors.photometric.host_points``); the targets' and the right camera's twists;
+    zeros and lt = 0 without a shutter."""
+    z3 = np.zeros(3)
+    if shutter is None or shutter.line_time_s == 0.0:
+        return bearing, np.zeros((len(uv), 3)), np.zeros((max(M, 1), 3)), np.zeros((max(M, 1), 3)), z3, z3, 0.0
+    tw = np.asarray(shutter.twists, float)
+    s_h = shutter.line_time_s * np.asarray(uv, float)[:, 1]
+    w, v = tw[0, :3], tw[0, 3:]
+    bw = bearing + s_h[:, None, None] * np.cross(w, bearing)
+    xi_r = T_r_l.AdjointMap() @ tw[0]
+    T = tw[1:] if M else np.zeros((1, 6))
+    return (np.ascontiguousarray(bw), s_h[:, None] * v, np.ascontiguousarray(T[:, :3]),
+            np.ascontiguousarray(T[:, 3:]), xi_r[:3].copy(), xi_r[3:].copy(), float(shutter.line_time_s))
+
+
+@dataclass(frozen=True, eq=False)
 class StereoHost:
     """The host's right image (``(H, W, 3)`` stack), intrinsics, T_c1_c0 and the
     right image's affine [a, b] relative to the left."""
@@ -128,9 +164,10 @@ def target_list(targets: Sequence[np.ndarray], stereo: StereoHost | None):
 
 def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole,
                    T_b_c: gtsam.Pose3, params: HostParams, stereo: StereoHost | None,
-                   update: bool = True, imgs=None):
+                   update: bool = True, imgs=None, shutter: HostShutter | tuple | None = None):
     """Kernel call at ``args`` = [T_w_bh, ab_h, T_w_b1, ab_1, ...]: (H, g, E, E*, used);
-    ``imgs``: ``target_list(targets, stereo)`` if already built."""
+    ``imgs``: ``target_list(targets, stereo)`` if already built; ``shutter``: the images'
+    rolling shutter, or its ``shutter_args`` if already built."""
     M = len(targets)
     T_h, ab_h = args[0], np.asarray(args[1], float)
     T_c_b = T_b_c.inverse()
@@ -156,7 +193,8 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
     # a [:, :M] view would be a second Numba signature, ~8 s more to compile on a fresh
     # install (strided for M < M_max, contiguous for M = M_max)
     tm = pts.tmask if update else pts.tmask.copy()
-    return host_system(pts.patch.bearing, pts.patch.intensity, pts.wg, pts.patch.valid, rho, alive,
+    rs = shutter if isinstance(shutter, tuple) else shutter_args(shutter, pts.patch.bearing, pts.patch.uv, M, T_rl)
+    return host_system(rs[0], pts.patch.intensity, pts.wg, pts.patch.valid, rho, alive,
                        tm, imgs, _kvec(K), R_ji, t_ji, R_jb, T_b_c.rotation().matrix(),
                        T_b_c.translation(), ab_h, ab_t, w0, st, K1,
                        # C-order, writable: the layout of R_ji[m], t_ji[m], so that the stereo and
@@ -165,7 +203,8 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
                        ab_r, w0 * params.stereo_weight,
                        pts.stereo if stereo is not None else np.zeros(len(rho), np.bool_), hk,
                        params.outlier_rms, params.refine_iters, params.rho_min, params.rho_max, update,
-                       pts.rms)   # written only with update
+                       pts.rms,   # written only with update
+                       *rs[1:])
 
 
 @_njit
@@ -254,19 +293,23 @@ def timed_args(args: list, timing: HostTiming) -> tuple[list, np.ndarray]:
 
 def host_residual_fn(pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole, T_b_c: gtsam.Pose3,
                      params: HostParams, stereo: StereoHost | None = None,
-                     timing: HostTiming | None = None):
+                     timing: HostTiming | None = None, shutter: HostShutter | None = None):
     """The residual function over ``host_kinds(len(targets), timing is not None)`` keys
     (module docstring; with ``timing``, td's key last and the poses moved to the exposure
-    times, ``timed_args``)."""
+    times, ``timed_args``; with ``shutter``, each image row at its own time)."""
     targets = list(targets)
     imgs = target_list(targets, stereo)
+    rs = shutter_args(shutter, pts.patch.bearing, pts.patch.uv, len(targets),
+                      stereo.T_r_l if stereo is not None else gtsam.Pose3())
 
     def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
         if timing is None:
-            H, g, _, red, _ = host_linearize(args, pts, targets, K, T_b_c, params, stereo, imgs=imgs)
+            H, g, _, red, _ = host_linearize(args, pts, targets, K, T_b_c, params, stereo, imgs=imgs,
+                                             shutter=rs)
             return square_root(H, g, red, damp=params.damping)
         exposed, A = timed_args(args, timing)
-        H, g, _, red, _ = host_linearize(exposed, pts, targets, K, T_b_c, params, stereo, imgs=imgs)
+        H, g, _, red, _ = host_linearize(exposed, pts, targets, K, T_b_c, params, stereo, imgs=imgs,
+                                         shutter=rs)
         # Marquardt damping in the exposure poses' coordinates, as the untimed factor's. Damped
         # in the keys' coordinates instead, td moved together with the states along their
         # twists (which leaves the exposure poses, and so the photometric cost, unchanged)
@@ -280,10 +323,11 @@ def host_residual_fn(pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole,
 
 def host_factor(keys: Sequence[int], pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole,
                 T_b_c: gtsam.Pose3, params: HostParams, stereo: StereoHost | None = None,
-                health: FactorHealth | None = None, timing: HostTiming | None = None) -> gtsam.CustomFactor:
+                health: FactorHealth | None = None, timing: HostTiming | None = None,
+                shutter: HostShutter | None = None) -> gtsam.CustomFactor:
     """The per-host factor; ``targets`` the (H, W, 3) image stacks of the target keyframes
     in key order, at most ``pts.tmask.shape[1]`` of them; with ``timing`` the last key is
-    td's (``HostTiming``)."""
+    td's (``HostTiming``); ``shutter`` the images' rolling shutter (``HostShutter``)."""
     M = len(targets)
     timed = timing is not None
     if M < 1 or M > pts.tmask.shape[1]:
@@ -292,8 +336,10 @@ def host_factor(keys: Sequence[int], pts: HostPoints, targets: Sequence[np.ndarr
         raise ValueError(f"host_factor: {len(keys)} keys for {M} targets")
     if timed and (np.shape(timing.twists) != (M + 1, 6) or np.shape(timing.td_obs) != (M + 1,)):
         raise ValueError(f"host_factor: timing for {np.shape(timing.twists)} frames, need {M + 1}")
+    if shutter is not None and np.shape(shutter.twists) != (M + 1, 6):
+        raise ValueError(f"host_factor: shutter twists for {np.shape(shutter.twists)} frames, need {M + 1}")
     n = 8 * (M + 1) + timed
     return custom_factor(gtsam.noiseModel.Unit.Create(n + 1), keys, host_kinds(M, timed),
-                         host_residual_fn(pts, targets, K, T_b_c, params, stereo, timing), health,
+                         host_residual_fn(pts, targets, K, T_b_c, params, stereo, timing, shutter), health,
                          cache=True, state=lambda: (pts.rho.tobytes(), pts.alive.tobytes(),
                                                     pts.tmask.tobytes()))

@@ -25,6 +25,13 @@ of error there must not discard a good residual for good); a point whose static 
 ``outlier_rms`` sits out the linearization, one whose depth reaches the bounds is
 switched off in ``alive`` for good.
 
+Rolling shutter (``factors.photometric.Shutter``, first order in the row time): the
+host points arrive as ``bearing + rho sv`` (``factors.photometric.host_points``: each
+point moved back from its row's time to the host's row 0), and each target (the right
+camera for the stereo term) is sampled at its row's time along its camera twist
+(``TW``, ``TV``; ``rw``, ``rv``; ``lt`` s per row, 0: global shutter, the same
+arithmetic as without these arguments).
+
 Images are (H, W, 3) float64 stacks [I, dI/du, dI/dv] (``BilinearImage._stack``),
 sampled bilinearly with the validity margins of ``BilinearImage``.
 """
@@ -36,65 +43,14 @@ import math
 import numpy as np
 
 from factors.jit import njit as _njit
+from factors.photometric_warp import _warp, _warp_rs
 
-MIN_Z = 1e-6
 MAX_LOG_GAIN = 5.0
 """Relative log-gains a_j - a_h are clipped to +-5 (x150) so a diverging affine state can
 never overflow exp (gains beyond that are not a camera's exposure change)."""
 RHO_STEP_TOL = 0.05
 """Depth refinement stops after a step below 0.05 / sqrt(H_rr) (~0.07 standard deviations
 of rho given the poses): a further step would not change the linearization measurably."""
-SATURATED = 250.0
-DARK = 5.0
-"""Intensities at or above ``SATURATED`` or at or below ``DARK`` are clipped by the sensor:
-such target samples (and host pixels, ``HostPoints.create``) carry no residual (the
-affine brightness model does not hold there)."""
-
-
-@_njit
-def sample(stack, u, v, out):
-    """Bilinear [I, gx, gy] at (u, v) into ``out`` (3,); False outside the valid area."""
-    h, w = stack.shape[0], stack.shape[1]
-    if not (u >= 1.0 and u < w - 2.0 and v >= 1.0 and v < h - 2.0):
-        return False
-    u0, v0 = int(u), int(v)
-    fx, fy = u - u0, v - v0
-    for c in range(3):
-        a = stack[v0, u0, c] + fx * (stack[v0, u0 + 1, c] - stack[v0, u0, c])
-        b = stack[v0 + 1, u0, c] + fx * (stack[v0 + 1, u0 + 1, c] - stack[v0 + 1, u0, c])
-        out[c] = a + fy * (b - a)
-    return True
-
-
-@_njit
-def _warp_any(f0, f1, f2, rho, R, t, K, stack, smp, dq):
-    """Target pixel of the scaled point q = R f + rho t; fills smp = [I, gx, gy] and
-    dq = dr/dq (3,) and returns (ok, q0, q1, q2, u, v); ok: in front of the camera and
-    inside the valid image area, whatever the intensity."""
-    q0 = R[0, 0] * f0 + R[0, 1] * f1 + R[0, 2] * f2 + rho * t[0]
-    q1 = R[1, 0] * f0 + R[1, 1] * f1 + R[1, 2] * f2 + rho * t[1]
-    q2 = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 + rho * t[2]
-    if q2 <= MIN_Z:
-        return False, q0, q1, q2, 0.0, 0.0
-    u = K[0] * q0 / q2 + K[2]
-    v = K[1] * q1 / q2 + K[3]
-    if not sample(stack, u, v, smp):
-        return False, q0, q1, q2, u, v
-    gu = smp[1] * K[0] / q2
-    gv = smp[2] * K[1] / q2
-    dq[0] = gu
-    dq[1] = gv
-    dq[2] = -(gu * q0 + gv * q1) / q2
-    return True, q0, q1, q2, u, v
-
-
-@_njit
-def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
-    """:func:`_warp_any`, not ok on a clipped target sample (>= ``SATURATED``, <= ``DARK``)."""
-    ok, q0, q1, q2, u, v = _warp_any(f0, f1, f2, rho, R, t, K, stack, smp, dq)
-    return ok and not (smp[0] >= SATURATED or smp[0] <= DARK), q0, q1, q2, u, v
-
-
 @_njit
 def _huber(e2, k):
     """(IRLS weight, cost) of a whitened squared residual e2 under Huber k (k <= 0: none)."""
@@ -105,10 +61,17 @@ def _huber(e2, k):
 
 
 @_njit
-def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k):
+def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k, tw, tv, lt):
     """One term of point p at rho, residual I(warp) - b - s I_host (s: gain e^(a_j - a_h),
-    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid)."""
+    b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid). The host point
+    is ``bearing[p, k] + rho sv[p]`` (``factors.photometric.host_points``); ``tw``, ``tv``,
+    ``lt`` the target's rolling shutter (:func:`_warp_rs`)."""
     P = bearing.shape[1]
+    c0, c1, c2 = sv[p, 0], sv[p, 1], sv[p, 2]
+    # d(host point)/drho through the warp: t + R sv
+    e0 = t[0] + R[0, 0] * c0 + R[0, 1] * c1 + R[0, 2] * c2
+    e1 = t[1] + R[1, 0] * c0 + R[1, 1] * c1 + R[1, 2] * c2
+    e2 = t[2] + R[2, 0] * c0 + R[2, 1] * c1 + R[2, 2] * c2
     smp = np.empty(3)
     dq = np.empty(3)
     Hrr = 0.0
@@ -119,12 +82,18 @@ def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k)
     for k in range(P):
         if not hvalid[p, k]:
             continue
-        ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
-                                     R, t, K, img, smp, dq)
+        if lt > 0.0:
+            ok, q0, q1, q2, u, v, jx = _warp_rs(bearing[p, k, 0] + rho * c0, bearing[p, k, 1] + rho * c1,
+                                                bearing[p, k, 2] + rho * c2, rho, R, t, K, img, smp, dq,
+                                                tw, tv, lt)
+        else:
+            ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
+                                         R, t, K, img, smp, dq)
+            jx = 0.0
         if not ok:
             continue
         r = smp[0] - b - s * Ii[p, k]
-        jr = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
+        jr = dq[0] * e0 + dq[1] * e1 + dq[2] * e2 + jx
         w = w0 * wg[p, k]
         hw, c = _huber(w * r * r, huber_k)
         Hrr += hw * w * jr * jr
@@ -136,36 +105,43 @@ def _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k)
 
 
 @_njit
-def _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k):
-    """Static stereo of point p at rho (right affine ``ab_r`` relative to the left)."""
+def _stereo_terms(p, rho, bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k,
+                  rw, rv, lt):
+    """Static stereo of point p at rho (right affine ``ab_r`` relative to the left; ``rw``,
+    ``rv`` the right camera's twist)."""
     s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w, huber_k)
+    return _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w,
+                      huber_k, rw, rv, lt)
 
 
 @_njit
-def _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k):
+def _temporal_rho(p, m, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k,
+                  tw, tv, lt):
     """Temporal term of point p in target m at rho: I_j - b_j - s (I_h - b_h)."""
     s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-    return _rho_terms(p, rho, bearing, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0, huber_k)
+    return _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0,
+                      huber_k, tw, tv, lt)
 
 
 @_njit
 def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
-               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max):
+               st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max,
+               sv, TW, TV, rw, rv, lt):
     """A few damped Gauss-Newton steps on the inverse depth of point p (poses held)."""
     M = R_ji.shape[0]
     for _ in range(iters):
         Hrr = 0.0
         gr = 0.0
         if use_stereo:
-            a, b, _c, _s, _n = _stereo_terms(p, rho, bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                             t_rl, ab_r, st_w, huber_k)
+            a, b, _c, _s, _n = _stereo_terms(p, rho, bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl,
+                                             t_rl, ab_r, st_w, huber_k, rw, rv, lt)
             Hrr += a
             gr += b
         for m in range(M):
             if tmask[p, m]:
-                a, b, _c, _s, _n = _temporal_rho(p, m, rho, bearing, Ii, wg, hvalid, imgs[m], K,
-                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k)
+                a, b, _c, _s, _n = _temporal_rho(p, m, rho, bearing, sv, Ii, wg, hvalid, imgs[m], K,
+                                                 R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k,
+                                                 TW[m], TV[m], lt)
                 Hrr += a
                 gr += b
         if Hrr <= 1e-12:
@@ -182,7 +158,7 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
 @_njit
 def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
                 st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k, outlier_rms, iters,
-                rho_min, rho_max):
+                rho_min, rho_max, sv, TW, TV, rw, rv, lt):
     """Pass 1 of :func:`host_system`, one point at a time (a numba ``prange`` over the
     points cost 4x more per call on the shared 2-core machine of the measurements):
     (refined rho (N,), stereo/depth ok (N,))."""
@@ -194,10 +170,10 @@ def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
             continue
         rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
                            w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask[p], huber_k, iters,
-                           rho_min, rho_max)
+                           rho_min, rho_max, sv, TW, TV, rw, rv, lt)
         if smask[p]:
-            a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k)
+            a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl,
+                                            t_rl, ab_r, st_w, huber_k, rw, rv, lt)
             if nv < P // 2 or ss > outlier_rms * outlier_rms * nv:
                 ok_p[p] = False
         if rp[p] <= rho_min or rp[p] >= rho_max:
@@ -207,7 +183,7 @@ def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
 
 @_njit
 def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c, t_b_c,
-               ab_h, ab_t, w0):
+               ab_h, ab_t, w0, sv, TW, TV, lt):
     """Pass 2 of :func:`host_system`: every (point, target) pair's residuals at the refined
     depth, stored for pass 3 so the pattern RMS that decides the outliers and the
     normal equations share one warp per pixel. Returns (rows (N, M, P, 19) =
@@ -230,14 +206,25 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
             if not tmask[p, m]:
                 continue
             s = math.exp(min(max(ab_t[m, 0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
-            R, t, Rjb = R_ji[m], t_ji[m], R_jb[m]
+            R, t, Rjb, tw, tv = R_ji[m], t_ji[m], R_jb[m], TW[m], TV[m]
+            c0, c1, c2 = sv[p, 0], sv[p, 1], sv[p, 2]
+            e0 = t[0] + R[0, 0] * c0 + R[0, 1] * c1 + R[0, 2] * c2    # t + R sv
+            e1 = t[1] + R[1, 0] * c0 + R[1, 1] * c1 + R[1, 2] * c2
+            e2 = t[2] + R[2, 0] * c0 + R[2, 1] * c1 + R[2, 2] * c2
             ss = 0.0
             nv = 0
             for k in range(P):
                 if not hvalid[p, k]:
                     continue
-                f0, f1, f2 = bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2]
-                ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
+                f0 = bearing[p, k, 0] + r_p * c0     # the host point (host_points)
+                f1 = bearing[p, k, 1] + r_p * c1
+                f2 = bearing[p, k, 2] + r_p * c2
+                if lt > 0.0:     # (a global shutter calls _warp directly: 30% faster)
+                    ok, q0, q1, q2, u, v, jx = _warp_rs(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq,
+                                                        tw, tv, lt)
+                else:
+                    ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
+                    jx = 0.0
                 if not ok:
                     continue
                 row = rows[p, m, k]
@@ -248,7 +235,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
                 valid[p, m, k] = True
                 row[0] = r
                 row[1] = w0 * wg[p, k]
-                row[2] = dq[0] * t[0] + dq[1] * t[1] + dq[2] * t[2]
+                row[2] = dq[0] * e0 + dq[1] * e1 + dq[2] * e2 + jx
                 for i in range(3):      # g_b = dr/dq R_c_b (row vector)
                     gb[i] = dq[0] * R_b_c[i, 0] + dq[1] * R_b_c[i, 1] + dq[2] * R_b_c[i, 2]
                 qb0 = R_b_c[0, 0] * q0 + R_b_c[0, 1] * q1 + R_b_c[0, 2] * q2 + r_p * t_b_c[0]
@@ -285,7 +272,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
 @_njit
 def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
                 t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k,
-                outlier_rms, iters, rho_min, rho_max, update, rms):
+                outlier_rms, iters, rho_min, rho_max, update, rms, sv, TW, TV, rw, rv, lt):
     """Reduced normal equations of one host (module docstring).
 
     ``smask`` (N,) bool: the points that carry the static stereo term (their depth came
@@ -294,6 +281,8 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     refined rho and the outlier masks are written back into ``rho``/``alive``/``tmask``,
     and each (point, target) pair's pattern RMS into ``rms`` (N, >= M; ``_pair_rows``'s:
     -1 left the image, inf not judged or the point failed its stereo or depth check).
+    Rolling shutter (module docstring): ``sv`` (N, 3), ``TW``, ``TV`` (M, 3), ``rw``, ``rv``
+    (3,), ``lt`` (s per row).
     """
     N, P = Ii.shape
     M = R_ji.shape[0]
@@ -308,9 +297,9 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     # every (point, target)
     rp, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
                            ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask,
-                           huber_k, outlier_rms, iters, rho_min, rho_max)
+                           huber_k, outlier_rms, iters, rho_min, rho_max, sv, TW, TV, rw, rv, lt)
     rows, valid, ms = _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji,
-                                 R_jb, R_b_c, t_b_c, ab_h, ab_t, w0)
+                                 R_jb, R_b_c, t_b_c, ab_h, ab_t, w0, sv, TW, TV, lt)
     if update:
         rms[:, :M] = ms          # inf where pass 1 left the point out
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
@@ -332,8 +321,8 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         gr = 0.0
         cp = 0.0
         if smask[p]:
-            a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k)
+            a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl,
+                                            t_rl, ab_r, st_w, huber_k, rw, rv, lt)
             Hrr += a
             gr += b
             cp += c

@@ -4,7 +4,7 @@ Jacobian with respect to the new frame's pose and affine brightness, in one pass
 
 Same arithmetic as ``factors.photometric.temporal_eval`` with the host at the identity
 and T_b_c = I (the keyframe camera is the reference) followed by ``sqrt_weights``; the
-warp is the host factor's (``factors.photometric_kernel._warp_any``) without its test
+warp is the host factor's (``factors.photometric_warp._warp_any``) without its test
 for clipped pixels:
 
     q = R f + rho t  ((R, t) = T_kf_new^-1, keyframe camera -> new camera),
@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.photometric_kernel import _warp_any
+from factors.photometric_warp import _warp_any
 
 
 @_njit

@@ -23,7 +23,7 @@ import gtsam
 import numpy as np
 
 from factors.image_ops import AnalyticImage, BilinearImage, SmoothTexture
-from factors.photometric import (Pinhole, PhotometricParams, make_host_patch, stereo_eval,
+from factors.photometric import (Pinhole, PhotometricParams, Shutter, make_host_patch, stereo_eval,
                                  stereo_factor, stereo_residual_fn, temporal_eval,
                                  temporal_factor, temporal_residual_fn)
 from factors.photometric_point import StereoTerm, point_factor, point_kinds, point_residual_fn
@@ -56,6 +56,14 @@ def _point_seen_at(T_w_ci: gtsam.Pose3, T_w_cj: gtsam.Pose3, uv_j: np.ndarray, z
     return K.project(p_ci), 1.0 / p_ci[2]
 
 
+def _shutter(rng: np.random.Generator, rolling: bool) -> Shutter | None:
+    """A rolling shutter of 0.1 ms a row (48 ms readout, 3x the rendered test sequence's)
+    with random host and target twists of ~1 rad/s and ~1 m/s, or None."""
+    if not rolling:
+        return None
+    return Shutter(1e-4, rng.normal(0, 1.0, 6), rng.normal(0, 1.0, 6))
+
+
 def _frac_ok(uv: np.ndarray, margin: float = 0.05) -> bool:
     f = uv - np.floor(uv)
     return bool(np.all((f > margin) & (f < 1 - margin)))
@@ -64,8 +72,9 @@ def _frac_ok(uv: np.ndarray, margin: float = 0.05) -> bool:
 def temporal_case(name: str, *, rho_target: float | None = None, baseline: float = 0.15,
                   uv_j: tuple[float, float] | None = None, zero_affine: bool = False,
                   identity_extrinsic: bool = False, bilinear: bool = False,
-                  degenerate: bool = False) -> JacobianCase:
-    """A temporal factor at a random state; options select the degenerate variants."""
+                  degenerate: bool = False, rolling: bool = False) -> JacobianCase:
+    """A temporal factor at a random state; options select the degenerate variants;
+    ``rolling``: both images with a rolling shutter (``factors.photometric.Shutter``)."""
 
     def build(rng: np.random.Generator):
         target = analytic_image(rng)
@@ -86,7 +95,8 @@ def temporal_case(name: str, *, rho_target: float | None = None, baseline: float
             host = make_host_patch(host_img, uv_i[None], K)
             ab_i = np.zeros(2) if zero_affine else rng.normal([0, 0], [0.3, 10.0])
             ab_j = np.zeros(2) if zero_affine else rng.normal([0, 0], [0.3, 10.0])
-            fn = temporal_residual_fn(host, target, K, T_b_c, CHECK_PARAMS)
+            shutter = _shutter(rng, rolling)
+            fn = temporal_residual_fn(host, target, K, T_b_c, CHECK_PARAMS, shutter=shutter)
             if bilinear:
                 ev = temporal_eval(T_w_bi, T_w_bj, np.array([rho]), ab_i, ab_j, host, target,
                                    K, T_b_c)
@@ -96,7 +106,7 @@ def temporal_case(name: str, *, rho_target: float | None = None, baseline: float
         else:
             raise RuntimeError(f"{name}: no valid random state found")
         keys = [X(0), X(1), D(0), A(0), A(1)]
-        factor = temporal_factor(keys, host, target, K, T_b_c, CHECK_PARAMS)
+        factor = temporal_factor(keys, host, target, K, T_b_c, CHECK_PARAMS, shutter=shutter)
         values = gtsam.Values()
         values.insert(keys[0], T_w_bi)
         values.insert(keys[1], T_w_bj)
@@ -114,8 +124,9 @@ def temporal_case(name: str, *, rho_target: float | None = None, baseline: float
 
 
 def stereo_case(name: str, *, baseline: float = 0.11, rho_range=(0.1, 1.5), bilinear: bool = False,
-                degenerate: bool = False) -> JacobianCase:
-    """A static stereo factor (left host -> right target) at a random state."""
+                degenerate: bool = False, rolling: bool = False) -> JacobianCase:
+    """A static stereo factor (left host -> right target) at a random state (``rolling``:
+    both cameras with a rolling shutter)."""
 
     def build(rng: np.random.Generator):
         target = analytic_image(rng)
@@ -129,14 +140,15 @@ def stereo_case(name: str, *, baseline: float = 0.11, rho_range=(0.1, 1.5), bili
             rho = rng.uniform(*rho_range)
             host = make_host_patch(left, uv[None], K)
             ab = rng.normal([0, 0], [0.2, 8.0])
-            ev = stereo_eval(np.array([rho]), ab, host, target, K, T_r_l)
+            shutter = _shutter(rng, rolling)
+            ev = stereo_eval(np.array([rho]), ab, host, target, K, T_r_l, shutter=shutter)
             if ev.valid.all() and (not bilinear or _frac_ok(ev.uv)):
                 break
         else:
             raise RuntimeError(f"{name}: no valid random state found")
         params = PhotometricParams(sigma_I=4.0, huber_k=None, weight=0.5)
-        fn = stereo_residual_fn(host, target, K, T_r_l, params)
-        factor = stereo_factor([D(0), A(0)], host, target, K, T_r_l, params)
+        fn = stereo_residual_fn(host, target, K, T_r_l, params, shutter=shutter)
+        factor = stereo_factor([D(0), A(0)], host, target, K, T_r_l, params, shutter=shutter)
         values = gtsam.Values()
         values.insert(D(0), np.array([rho]))
         values.insert(A(0), ab)
@@ -221,10 +233,14 @@ CASES: list[JacobianCase] = [
     temporal_case("photometric_temporal_near_border", uv_j=(W - 3.3, 200.4), degenerate=True),
     temporal_case("photometric_temporal_tiny_baseline", baseline=1e-4, degenerate=True),
     temporal_case("photometric_temporal_far_point", rho_target=1e-3, degenerate=True),
+    temporal_case("photometric_temporal_rolling_shutter", rolling=True),
+    temporal_case("photometric_temporal_rolling_shutter_far_point", rho_target=1e-3, rolling=True,
+                  degenerate=True),
     stereo_case("photometric_stereo_random"),
     stereo_case("photometric_stereo_bilinear_exact", bilinear=True),
     stereo_case("photometric_stereo_tiny_baseline", baseline=1e-3, degenerate=True),
     stereo_case("photometric_stereo_far_point", rho_range=(1e-4, 1e-3), degenerate=True),
+    stereo_case("photometric_stereo_rolling_shutter", rolling=True),
 ]
 
 

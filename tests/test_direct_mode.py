@@ -324,3 +324,27 @@ def test_accelerometer_offset_contradicted_by_trackframe_is_bridged(sim_exposure
     assert len(res.outputs) == len(data.cam0.t_ns)
     e = evaluate(*res.arrays(), data.groundtruth)
     assert e.ate_rmse < bound, f"ATE {e.ate_rmse:.4f} m"
+
+
+@pytest.mark.slow
+def test_rolling_shutter_is_modelled_in_the_photometric_modes(tmp_path):
+    """4 s of half-resolution stereo with a rolling shutter (60 us a row at 240 rows, the
+    readout of 30 us at full resolution): the host factors take each row at its time
+    (``factors.photometric_host.HostShutter``) and beat the same run told the cameras
+    have a global shutter (measured: direct 2.0 vs 3.9 mm, hybrid 1.4 vs 4.7 mm; another
+    seed direct 2.6 vs 8.0 mm)."""
+    from vio.sim import simulate
+    from vio.sim.config import SimConfig
+    simulate(tmp_path, SimConfig(seconds=4.0, seed=3, image_scale=0.5, line_time_s=60e-6))
+    data = load_euroc(tmp_path)
+    assert data.cam0.calib.line_time_s == 60e-6
+    glob = dataclasses.replace(data, **{c: dataclasses.replace(
+        getattr(data, c), calib=dataclasses.replace(getattr(data, c).calib, line_time_s=0.0))
+        for c in ("cam0", "cam1")})
+    for mode, bound in (("direct", 0.003), ("hybrid", 0.003)):
+        ate = {}
+        for name, d in (("rolling", data), ("global", glob)):
+            res = run_dataset(d, _small(mode == "hybrid"), mode=mode)
+            assert res.recoveries == 0
+            ate[name] = evaluate(*res.arrays(), d.groundtruth).ate_rmse
+        assert ate["rolling"] < bound and ate["rolling"] < 0.7 * ate["global"], f"{mode}: {ate}"

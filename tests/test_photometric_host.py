@@ -12,9 +12,9 @@ import pytest
 
 from cases_photometric import H, W, K, analytic_image, random_pose
 from factors.image_ops import BilinearImage
-from factors.photometric import (PhotometricParams, make_host_patch, sqrt_weights, stereo_eval,
-                                 temporal_eval)
-from factors.photometric_host import (HostParams, HostPoints, StereoHost, host_factor,
+from factors.photometric import (PhotometricParams, Shutter, make_host_patch, sqrt_weights,
+                                 stereo_eval, temporal_eval)
+from factors.photometric_host import (HostParams, HostPoints, HostShutter, StereoHost, host_factor,
                                       host_linearize, square_root)
 
 X = gtsam.symbol_shorthand.X
@@ -38,15 +38,18 @@ def _scene(seed: int, n: int = 25, m: int = 2):
     return imgs, T_b_c, args, patch, rho, stereo
 
 
-def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None):
+def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None, shutter=None):
     """Weighted (r, J) of every residual, columns [frames (8 (M + 1)), rho (N)]; the
-    static stereo rows only for the points in ``smask`` (default all)."""
+    static stereo rows only for the points in ``smask`` (default all); ``shutter`` a
+    ``HostShutter`` (each pair's ``Shutter`` from its frames' twists)."""
     M, N = (len(args) - 2) // 2, len(rho)
+    pair = (lambda j: None) if shutter is None else (
+        lambda j: Shutter(shutter.line_time_s, shutter.twists[0], shutter.twists[j]))
     n = 8 * (M + 1)
     rows, res = [], []
     for m in range(M):
         ev = temporal_eval(args[0], args[2 + 2 * m], rho, args[1], args[3 + 2 * m], patch,
-                           imgs[1 + m], K, T_b_c)
+                           imgs[1 + m], K, T_b_c, shutter=pair(m + 1))
         sw = sqrt_weights(ev, patch, pp)
         o = 8 * (m + 1)
         for i in range(N):
@@ -57,7 +60,9 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None):
                 row[n + i] = ev.J["rho"][i, k, 0]
                 rows.append(sw[i, k] * row)
                 res.append(sw[i, k] * ev.r[i, k])
-    ev = stereo_eval(rho, stereo.ab, patch, imgs[-1], K, T_RL)
+    right = None if shutter is None else Shutter(shutter.line_time_s, shutter.twists[0],
+                                                 T_RL.AdjointMap() @ shutter.twists[0])
+    ev = stereo_eval(rho, stereo.ab, patch, imgs[-1], K, T_RL, shutter=right)
     sw = sqrt_weights(ev, patch, pp)
     for i in range(N):
         if smask is not None and not smask[i]:
@@ -70,20 +75,27 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None):
     return np.array(res), np.array(rows), n
 
 
-@pytest.mark.parametrize("mixed", [False, True])
-def test_host_factor_is_the_schur_complement_of_the_pointwise_problem(mixed):
+@pytest.mark.parametrize("mixed,rolling", [(False, False), (True, False), (True, True)])
+def test_host_factor_is_the_schur_complement_of_the_pointwise_problem(mixed, rolling):
     """Without depth refinement, Huber or outliers, the kernel's reduced H and g equal
     H_xx - H_xr H_rr^-1 H_rx and g_x - H_xr H_rr^-1 g_r of the point-wise problem; with
     ``mixed``, a third of the points have no static stereo term (``HostPoints.stereo``:
-    depths from a temporal search)."""
+    depths from a temporal search); with ``rolling``, every image has a rolling shutter
+    (``HostShutter``; the pairwise terms' Jacobians are checked numerically by the shared
+    suite)."""
     imgs, T_b_c, args, patch, rho, stereo = _scene(3)
     pp = PhotometricParams(4.0, 50.0, None)
     params = HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0)
     smask = (np.arange(len(rho)) % 3 != 0) if mixed else None
+    shutter = HostShutter(1e-4, np.random.default_rng(9).normal(0, 0.5, (3, 6))) if rolling else None
     pts = HostPoints.create(patch, rho, 50.0, 4, smask)
     Hk, gk, E, red, used = host_linearize(args, pts, [im._stack for im in imgs[1:-1]], K, T_b_c,
-                                          params, stereo)
-    r, J, n = _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask)
+                                          params, stereo, shutter=shutter)
+    if rolling:   # the shutter moves the residuals: not the global-shutter answer
+        H0 = host_linearize(args, HostPoints.create(patch, rho, 50.0, 4, smask),
+                            [im._stack for im in imgs[1:-1]], K, T_b_c, params, stereo)[0]
+        assert np.abs(Hk - H0).max() > 1e-3 * np.abs(H0).max()
+    r, J, n = _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask, shutter)
     Hf, gf = J.T @ J, J.T @ r
     Hxr, Hrr = Hf[:n, n:], Hf[n:, n:]
     Hs = Hf[:n, :n] - Hxr @ np.linalg.solve(Hrr, Hxr.T)
@@ -100,23 +112,26 @@ def test_host_factor_is_the_schur_complement_of_the_pointwise_problem(mixed):
     np.testing.assert_allclose(0.5 * rr @ rr, red, rtol=1e-9)
 
 
-def test_host_factor_refines_depths_then_reduces_at_them():
+@pytest.mark.parametrize("rolling", [False, True])
+def test_host_factor_refines_depths_then_reduces_at_them(rolling):
     """With depth refinement on, the factor linearizes at the refined inverse depths it
     writes back: H and g equal the point-wise Schur complement at those depths, the
-    refinement lowers the energy, and the refined depths' gradient is ~0."""
+    refinement lowers the energy, and the refined depths' gradient is ~0 (``rolling``:
+    with a rolling shutter)."""
     imgs, T_b_c, args, patch, rho, stereo = _scene(4, n=15, m=1)
     pp = PhotometricParams(4.0, 50.0, None)
     stacks = [im._stack for im in imgs[1:-1]]
+    shutter = HostShutter(1e-4, np.random.default_rng(4).normal(0, 0.5, (2, 6))) if rolling else None
     E0 = host_linearize(args, HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c,
-                        HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0), stereo)[2]
+                        HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0), stereo, shutter=shutter)[2]
     params = HostParams(pp, 1.0, 1e9, 3, 1e-3, 100.0)
     pts = HostPoints.create(patch, rho, 50.0, 4)
-    Hk, gk, E, _, used = host_linearize(args, pts, stacks, K, T_b_c, params, stereo)
+    Hk, gk, E, _, used = host_linearize(args, pts, stacks, K, T_b_c, params, stereo, shutter=shutter)
     assert E < E0 and not np.array_equal(pts.rho, rho)
     keep = pts.alive
     assert used == keep.sum() >= 5
     r, J, n = _full_problem(imgs, T_b_c, args, patch.subset(np.flatnonzero(keep)), pts.rho[keep],
-                            stereo, pp)
+                            stereo, pp, shutter=shutter)
     Hf, gf = J.T @ J, J.T @ r
     Hxr, Hrr = Hf[:n, n:], Hf[n:, n:]
     Hs = Hf[:n, :n] - Hxr @ np.linalg.solve(Hrr, Hxr.T)

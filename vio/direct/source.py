@@ -28,7 +28,9 @@ Per keyframe k (``prepare_update``):
 
 With ``PointsConfig.exposure_td`` (and td estimated) each host factor also carries td's
 key and sees its frames at their exposure times, moved along the body twists kept at
-their insertion (``factors.photometric_host.HostTiming``).
+their insertion (``factors.photometric_host.HostTiming``). With a rolling shutter
+(cam0's ``line_time_s``, for both cameras) each image row is taken at its own time along
+the same twists (``factors.photometric_host.HostShutter``).
 
 Outliers (a (point, target) pair off the image or above ``outlier_rms``, a point whose
 stereo match fails or whose depth leaves the range) are switched off inside the
@@ -47,7 +49,8 @@ import numpy as np
 
 from factors.adapter import FactorHealth
 from factors.photometric import PhotometricParams, make_host_patch
-from factors.photometric_host import HostParams, HostPoints, HostTiming, StereoHost, host_factor
+from factors.photometric_host import (HostParams, HostPoints, HostShutter, HostTiming, StereoHost,
+                                      host_factor)
 from vio.backend.graph import TD, A, B, V, X
 from vio.backend.motion import body_motion
 from vio.direct.config import DirectConfig
@@ -128,12 +131,12 @@ class PhotometricSource(TrackFrameStep):
             fd = self.kfs[f]
             if f < k and not fd.in_graph and vals.exists(X(f)):
                 self._insert_keyframe(fd, np.zeros(2), g, v, stamps)
-                if self._timed():
+                if self._twisted():
                     self.twists[f] = self._twist(f, vals.atPose3(X(f)), vals.atVector(V(f)),
                                                  vals.atConstantBias(B(f)))
         self._host_pending()      # before TrackFrame: temporal points join its reference
         ab_k = self._track(k, kd, pred, v)
-        if self._timed():
+        if self._twisted():
             self.twists[k] = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
         T_k = v.atPose3(X(k))
         for h in sorted(self.hosts):
@@ -220,6 +223,19 @@ class PhotometricSource(TrackFrameStep):
     def _timed(self) -> bool:
         return self.cfg.points.exposure_td and self.est.cfg.calib.estimate_td
 
+    def _twisted(self) -> bool:
+        """The factors need the keyframes' body twists: exposure times or a rolling shutter."""
+        return self._timed() or self.rig.cam0.line_time_s > 0.0
+
+    def _shutter(self, frames: list[int]) -> HostShutter | None:
+        """The rolling shutter of a factor over ``frames`` (host first): cam0's line time and
+        each frame's cam0 twist, Ad(T_c_b) [omega_b, v_b] (None for a global shutter)."""
+        lt = float(self.rig.cam0.line_time_s)
+        if lt <= 0.0:
+            return None
+        Ad = self.rig.T_b_c.inverse().AdjointMap()
+        return HostShutter(lt, np.array([Ad @ self.twists.get(f, np.zeros(6)) for f in frames]))
+
     def _twist(self, f: int, T_w_b: gtsam.Pose3, v_w: np.ndarray, bias) -> np.ndarray:
         """Keyframe f's body twist [omega_b, v_b] (6,), ``vio.backend.motion.body_motion``."""
         td = float(self.est.values.atVector(TD)[0])
@@ -246,14 +262,15 @@ class PhotometricSource(TrackFrameStep):
             keys += [X(j), A(j)]
         stereo = StereoHost(kd.right._stack, self.rig.K1, self.rig.T_c1_c0, kd.ab_right)
         timing = None
+        frames = [host.k, *host.targets]
         if self._timed():
-            frames = [host.k, *host.targets]
             keys.append(TD)
             timing = HostTiming(np.array([self.twists.get(f, np.zeros(6)) for f in frames]),
                                 np.array([self.est.rates.td_obs(f) for f in frames]))
         self._pending.append((host, int(g.size())))
         g.add(host_factor(keys, host.pts, [self.kfs[j].left._stack for j in host.targets],
-                          self.rig.K0, self.rig.T_b_c, self.params, stereo, self.health, timing))
+                          self.rig.K0, self.rig.T_b_c, self.params, stereo, self.health, timing,
+                          self._shutter(frames)))
         self.n_factors_built += 1
 
     def _insert_keyframe(self, kd: KeyframeData, ab: np.ndarray, g, v, stamps) -> None:

@@ -67,7 +67,10 @@ class TrackFrameStep:
             return ab_p
         T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
         dist, ang = pose_offset(T_pred, T_tr)
-        used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
+        # TrackFrame has no rolling-shutter model: with one, its pose is no guess (the sim12
+        # render, 30 us a row: direct 26.3 mm with it, 6.1 mm without; benchmarks/README.md)
+        used = bool(res.ok and pc.use_track_guess and self.rig.cam0.line_time_s <= 0.0
+                    and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
         if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, ang, dt_ns, held):
             used = True      # converged against the IMU prior, and still away from the prediction
             free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p, ref)
