@@ -188,19 +188,27 @@ class Shutter:
     target: np.ndarray
 
 
+def rolled_bearings(bearing: np.ndarray, row_s: np.ndarray, twist: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Host bearings f (N, P, 3) of points seen ``row_s`` (N,) s after the host's row 0,
+    moved back to row 0 along the host camera's ``twist`` [omega, v] (6,) to first order:
+    (f + s (omega x f) (N, P, 3), s v (N, 3)); the scaled point is the first plus rho times
+    the second."""
+    s = np.asarray(row_s, float)[:, None, None]
+    w, v = np.asarray(twist[:3], float), np.asarray(twist[3:], float)
+    f = bearing + s * _cross(np.broadcast_to(w, bearing.shape), bearing, np.empty(bearing.shape))
+    return f, s[:, :, 0] * v
+
+
 def host_points(host: HostPatch, rho: np.ndarray, shutter: Shutter | None
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The scaled host points rho p_ci (N, P, 3) in the row-0 host camera and their
     derivative in rho (N, 1, 3): the bearing f without a shutter; with one, the point seen
-    at row time s_h moved back to row 0, f + s_h (omega_h x f) + rho s_h v_h."""
+    at row time s_h (its centre row's) moved back to row 0, f + s_h (omega_h x f) + rho s_h v_h."""
     if shutter is None or shutter.line_time_s == 0.0:
         return host.bearing, np.zeros((len(rho), 1, 3))
-    s_h = shutter.line_time_s * host.uv[:, 1][:, None, None]
-    w, v = np.asarray(shutter.host[:3], float), np.asarray(shutter.host[3:], float)
-    sv = s_h * v
-    f = host.bearing + s_h * _cross(np.broadcast_to(w, host.bearing.shape), host.bearing,
-                                    np.empty(host.bearing.shape))
-    return f + rho[:, None, None] * sv, sv
+    f, sv = rolled_bearings(host.bearing, shutter.line_time_s * host.uv[:, 1], shutter.host)
+    return f + rho[:, None, None] * sv[:, None, :], sv[:, None, :]
 
 
 def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pinhole,

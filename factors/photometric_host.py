@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.photometric import HostPatch, PhotometricParams, Pinhole
+from factors.photometric import HostPatch, PhotometricParams, Pinhole, rolled_bearings
 from factors.jit import njit as _njit
 from factors.photometric_kernel import host_system
 from factors.photometric_warp import DARK, SATURATED
@@ -124,12 +124,10 @@ def shutter_args(shutter: HostShutter | None, bearing: np.ndarray, uv: np.ndarra
     if shutter is None or shutter.line_time_s == 0.0:
         return bearing, np.zeros((len(uv), 3)), np.zeros((max(M, 1), 3)), np.zeros((max(M, 1), 3)), z3, z3, 0.0
     tw = np.asarray(shutter.twists, float)
-    s_h = shutter.line_time_s * np.asarray(uv, float)[:, 1]
-    w, v = tw[0, :3], tw[0, 3:]
-    bw = bearing + s_h[:, None, None] * np.cross(w, bearing)
+    bw, sv = rolled_bearings(bearing, shutter.line_time_s * np.asarray(uv, float)[:, 1], tw[0])
     xi_r = T_r_l.AdjointMap() @ tw[0]
     T = tw[1:] if M else np.zeros((1, 6))
-    return (np.ascontiguousarray(bw), s_h[:, None] * v, np.ascontiguousarray(T[:, :3]),
+    return (np.ascontiguousarray(bw), sv, np.ascontiguousarray(T[:, :3]),
             np.ascontiguousarray(T[:, 3:]), xi_r[:3].copy(), xi_r[3:].copy(), float(shutter.line_time_s))
 
 

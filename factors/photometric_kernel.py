@@ -85,7 +85,7 @@ def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, hube
         if lt > 0.0:
             ok, q0, q1, q2, u, v, jx = _warp_rs(bearing[p, k, 0] + rho * c0, bearing[p, k, 1] + rho * c1,
                                                 bearing[p, k, 2] + rho * c2, rho, R, t, K, img, smp, dq,
-                                                tw, tv, lt)
+                                                tw, tv, lt, K[1], K[3], True)
         else:
             ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
                                          R, t, K, img, smp, dq)
@@ -221,7 +221,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
                 f2 = bearing[p, k, 2] + r_p * c2
                 if lt > 0.0:     # (a global shutter calls _warp directly: 30% faster)
                     ok, q0, q1, q2, u, v, jx = _warp_rs(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq,
-                                                        tw, tv, lt)
+                                                        tw, tv, lt, K[1], K[3], True)
                 else:
                     ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
                     jx = 0.0

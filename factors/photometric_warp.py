@@ -63,21 +63,20 @@ def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
 
 
 @_njit
-def _warp_rs(f0, f1, f2, rho, R, t, K, stack, smp, dq, w, vel, lt):
-    """:func:`_warp` in a rolling-shutter target (``factors.photometric.Shutter``: twist
-    ``w``, ``vel`` of the target camera, ``lt`` s per row; ``lt`` 0: :func:`_warp`):
-    q = R f + rho t is the point in the row-0 camera, the image is sampled at
-    q_s = q - s (w x q + rho vel), s = lt * row(q). Returns (ok, q0, q1, q2 (q, not q_s),
-    u, v, jx) with dq = dr/dq through q_s and s, and jx = dr/drho at fixed q, -s dr/dq_s vel."""
-    if lt <= 0.0:
-        ok, q0, q1, q2, u, v = _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq)
-        return ok, q0, q1, q2, u, v, 0.0
+def _warp_rs(f0, f1, f2, rho, R, t, K, stack, smp, dq, w, vel, lt, rf, rc, clip):
+    """:func:`_warp` (``clip``; else :func:`_warp_any`) in a rolling-shutter target
+    (``factors.photometric.Shutter``: twist ``w``, ``vel`` of the target camera, ``lt`` s
+    per row of the full-resolution image, whose row of a point q is rf q1 / q2 + rc: K's
+    own fy, cy at full resolution, a pyramid level's TrackFrame passes level 0's): q = R f +
+    rho t is the point in the row-0 camera, the image is sampled at q_s = q - s (w x q +
+    rho vel), s = lt * row(q). Returns (ok, q0, q1, q2 (q, not q_s), u, v, jx) with
+    dq = dr/dq through q_s and s, and jx = dr/drho at fixed q, -s dr/dq_s vel."""
     q0 = R[0, 0] * f0 + R[0, 1] * f1 + R[0, 2] * f2 + rho * t[0]
     q1 = R[1, 0] * f0 + R[1, 1] * f1 + R[1, 2] * f2 + rho * t[1]
     q2 = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 + rho * t[2]
     if q2 <= MIN_Z:
         return False, q0, q1, q2, 0.0, 0.0, 0.0
-    s = lt * (K[1] * q1 / q2 + K[3])
+    s = lt * (rf * q1 / q2 + rc)
     a0 = w[1] * q2 - w[2] * q1 + rho * vel[0]
     a1 = w[2] * q0 - w[0] * q2 + rho * vel[1]
     a2 = w[0] * q1 - w[1] * q0 + rho * vel[2]
@@ -86,15 +85,15 @@ def _warp_rs(f0, f1, f2, rho, R, t, K, stack, smp, dq, w, vel, lt):
         return False, q0, q1, q2, 0.0, 0.0, 0.0
     u = K[0] * r0 / r2 + K[2]
     v = K[1] * r1 / r2 + K[3]
-    if not sample(stack, u, v, smp) or smp[0] >= SATURATED or smp[0] <= DARK:
+    if not sample(stack, u, v, smp) or (clip and (smp[0] >= SATURATED or smp[0] <= DARK)):
         return False, q0, q1, q2, u, v, 0.0
     gu = smp[1] * K[0] / r2
     gv = smp[2] * K[1] / r2
     gz = -(gu * r0 + gv * r1) / r2
     jx = -s * (gu * vel[0] + gv * vel[1] + gz * vel[2])
-    # dq_s/dq = I - s [w]x - a (ds/dq)^T, ds/dq = lt fy [0, 1/q2, -q1/q2^2]
+    # dq_s/dq = I - s [w]x - a (ds/dq)^T, ds/dq = lt rf [0, 1/q2, -q1/q2^2]
     da = gu * a0 + gv * a1 + gz * a2
-    k = lt * K[1] / q2
+    k = lt * rf / q2
     dq[0] = gu - s * (gv * w[2] - gz * w[1])
     dq[1] = gv - s * (gz * w[0] - gu * w[2]) - da * k
     dq[2] = gz - s * (gu * w[1] - gv * w[0]) + da * k * q1 / q2

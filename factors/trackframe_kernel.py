@@ -12,7 +12,12 @@ for clipped pixels:
     W = c^2 / (c^2 + |grad I_ref|^2) / (2 sigma_I^2 + (dr/drho)^2 V),
     row = sqrt(W) [r ; (g x q, -rho g) ; -s (I_ref - b_i), -1]     (g = dr/dq),
 
-the pose columns along ``T Exp(xi)``, xi = [omega, v] (GTSAM). Rows of pattern pixels
+the pose columns along ``T Exp(xi)``, xi = [omega, v] (GTSAM). With a rolling shutter
+(``lt`` > 0, ``factors.photometric.Shutter``) the keyframe points arrive moved back to
+its row 0 (``bearing + rho sv``) and the new frame is sampled at each row's time along
+its camera twist (``w``, ``vel``; ``factors.photometric_warp._warp_rs``, rows of the
+full-resolution image ``rf y + rc``), g = dr/dq through that, and dr/drho = g (t + R sv)
+- s g_s vel. Rows of pattern pixels
 that are invalid (behind the camera, outside the valid image area, host pixel
 invalid) get the constant ``oob`` residual and a zero Jacobian. The numpy path built
 ~25 temporary arrays per evaluation (``np.stack`` alone was 8% of direct mode's time).
@@ -25,20 +30,26 @@ import math
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.photometric_warp import _warp_any
+from factors.photometric_warp import _warp_any, _warp_rs
 
 
 @_njit
 def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b_j, c2, two_s2, oob,
-               r_w, J, r_raw, valid):
+               r_w, J, r_raw, valid, sv, w, vel, lt, rf, rc):
     """Fill the whitened residuals ``r_w`` (N P,), Jacobian ``J`` (N P, 8), the raw
     residuals ``r_raw`` (N, P) and ``valid`` (N, P). ``s`` the relative gain e^(a_j - a_i),
-    ``b_i``, ``b_j`` the offsets; ``var`` (N,) inverse-depth variances (zeros: no V term)."""
+    ``b_i``, ``b_j`` the offsets; ``var`` (N,) inverse-depth variances (zeros: no V term);
+    the rolling shutter ``sv`` (N, 3), ``w``, ``vel`` (3,), ``lt``, ``rf``, ``rc`` (module
+    docstring; ``lt`` 0: none)."""
     N, P = Ii.shape
     smp = np.empty(3)
     dq = np.empty(3)
     for p in range(N):
         rp = rho[p]
+        o0, o1, o2 = sv[p, 0] * rp, sv[p, 1] * rp, sv[p, 2] * rp   # rho sv
+        e0 = t[0] + R[0, 0] * sv[p, 0] + R[0, 1] * sv[p, 1] + R[0, 2] * sv[p, 2]    # t + R sv
+        e1 = t[1] + R[1, 0] * sv[p, 0] + R[1, 1] * sv[p, 1] + R[1, 2] * sv[p, 2]
+        e2 = t[2] + R[2, 0] * sv[p, 0] + R[2, 1] * sv[p, 1] + R[2, 2] * sv[p, 2]
         for k in range(P):
             row = p * P + k
             valid[p, k] = False
@@ -48,8 +59,14 @@ def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b
                 J[row, c] = 0.0
             if not hvalid[p, k]:
                 continue
-            ok, q0, q1, q2, _u, _v = _warp_any(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2],
-                                               rp, R, t, K, stack, smp, dq)
+            if lt > 0.0:
+                ok, q0, q1, q2, _u, _v, jx = _warp_rs(bearing[p, k, 0] + o0, bearing[p, k, 1] + o1,
+                                                      bearing[p, k, 2] + o2, rp, R, t, K, stack, smp, dq,
+                                                      w, vel, lt, rf, rc, False)
+            else:
+                ok, q0, q1, q2, _u, _v = _warp_any(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2],
+                                                   rp, R, t, K, stack, smp, dq)
+                jx = 0.0
             if not ok:
                 continue
             valid[p, k] = True
@@ -57,7 +74,7 @@ def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b
             h = s * (Ii[p, k] - b_i)
             r = smp[0] - b_j - h
             r_raw[p, k] = r
-            drho = gu * t[0] + gv * t[1] + gz * t[2]
+            drho = gu * e0 + gv * e1 + gz * e2 + jx
             sw = math.sqrt(c2 / (c2 + grad_sq[p, k]) / (two_s2 + drho * drho * var[p]))
             r_w[row] = sw * r
             J[row, 0] = sw * (gv * q2 - gz * q1)

@@ -9,7 +9,7 @@ import pytest
 from cases_photometric import box_scene, render_planes
 from factors.photometric import Pinhole
 from vio.direct import SelectConfig, TrackConfig
-from vio.direct.coarse_ref import moved_points, one_per_cell, window_reference
+from vio.direct.coarse_ref import host_in_camera, moved_points, one_per_cell, window_reference
 from vio.direct.select import select_points
 from vio.direct.trackframe import make_reference, track_frame
 
@@ -36,6 +36,37 @@ def test_moved_points_match_a_pinhole_projection():
     assert 50 < len(uv) < 200                      # some leave the image or go behind it
     np.testing.assert_allclose(uv, np.array(want_uv), atol=1e-9)
     np.testing.assert_allclose(rho, np.array(want_rho), rtol=1e-12)
+
+
+def test_moved_points_with_a_rolling_shutter_are_the_warp_of_the_factors():
+    """With a ``Shutter`` (host = h's camera twist, target = c's) a moved point is where
+    the photometric factors' warp (``factors.photometric._warp``) samples camera c, and its
+    inverse depth is c's at that row's time; the shutter moves it by pixels."""
+    from factors.photometric import HostPatch, Shutter, _warp
+    rng = np.random.default_rng(1)
+    uv_h = rng.uniform([40, 40], [W - 40, H - 40], (100, 2))
+    rho_h = rng.uniform(0.2, 1.5, 100)
+    T_c_h = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.03, 3)), rng.normal(0, 0.05, 3))
+    sh = Shutter(1e-4, rng.normal(0, 0.8, 6), rng.normal(0, 0.8, 6))
+    uv, rho, ok = host_in_camera(KS, T_c_h, uv_h, rho_h, sh)
+    uv0, _, _ = host_in_camera(KS, T_c_h, uv_h, rho_h)
+
+    class Flat:
+        def sample(self, u, v):
+            z = np.zeros_like(u)
+            return z, z, z, np.ones_like(u, bool)
+
+    patch = HostPatch(uv_h, KS.unproject(uv_h)[:, None, :], np.zeros((100, 1)), np.zeros((100, 1)),
+                      np.ones((100, 1), bool))
+    q, uv_w, *_ = _warp(patch, rho_h, T_c_h.rotation().matrix(), T_c_h.translation(), KS, Flat(), sh)
+    assert ok.all()
+    np.testing.assert_allclose(uv, uv_w[:, 0], atol=1e-9)
+    assert np.median(np.linalg.norm(uv - uv0, axis=1)) > 1.0
+    # rho = rho_h / z of the point in c at its row's time (q_s = q - s (w x q + rho v))
+    q = q[:, 0]
+    s = sh.line_time_s * (KS.fy * q[:, 1] / q[:, 2] + KS.cy)
+    q_s = q - s[:, None] * (np.cross(sh.target[:3], q) + rho_h[:, None] * sh.target[3:])
+    np.testing.assert_allclose(rho, rho_h / q_s[:, 2], rtol=1e-12)
 
 
 def test_one_per_cell_keeps_the_first_point_of_each_cell():

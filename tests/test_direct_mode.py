@@ -329,10 +329,10 @@ def test_accelerometer_offset_contradicted_by_trackframe_is_bridged(sim_exposure
 @pytest.mark.slow
 def test_rolling_shutter_is_modelled_in_the_photometric_modes(tmp_path):
     """4 s of half-resolution stereo with a rolling shutter (60 us a row at 240 rows, the
-    readout of 30 us at full resolution): the host factors take each row at its time
-    (``factors.photometric_host.HostShutter``) and beat the same run told the cameras
-    have a global shutter (measured: direct 2.0 vs 3.9 mm, hybrid 1.4 vs 4.7 mm; another
-    seed direct 2.6 vs 8.0 mm)."""
+    readout of 30 us at full resolution): the host factors and TrackFrame take each row
+    at its time (``factors.photometric_host.HostShutter``, ``factors.photometric.Shutter``)
+    and beat the same run told the cameras have a global shutter (measured: direct 0.8
+    vs 3.9 mm, hybrid 0.6 vs 4.7 mm; seed 5: 3.3 vs 8.0 mm, 9.7 vs 25.5 mm)."""
     from vio.sim import simulate
     from vio.sim.config import SimConfig
     simulate(tmp_path, SimConfig(seconds=4.0, seed=3, image_scale=0.5, line_time_s=60e-6))
@@ -341,7 +341,7 @@ def test_rolling_shutter_is_modelled_in_the_photometric_modes(tmp_path):
     glob = dataclasses.replace(data, **{c: dataclasses.replace(
         getattr(data, c), calib=dataclasses.replace(getattr(data, c).calib, line_time_s=0.0))
         for c in ("cam0", "cam1")})
-    for mode, bound in (("direct", 0.003), ("hybrid", 0.003)):
+    for mode, bound in (("direct", 0.002), ("hybrid", 0.002)):
         ate = {}
         for name, d in (("rolling", data), ("global", glob)):
             res = run_dataset(d, _small(mode == "hybrid"), mode=mode)

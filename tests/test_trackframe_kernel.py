@@ -1,7 +1,7 @@
 """TrackFrame's numba rows (``factors.trackframe_kernel``) against the numpy temporal residual
 (``factors.photometric.temporal_eval`` + ``sqrt_weights``, whose Jacobians the shared
 suite checks numerically): same whitened residuals, pose/affine Jacobian and validity,
-with and without the inverse-depth variance term."""
+with and without the inverse-depth variance term, and with a rolling shutter."""
 
 from __future__ import annotations
 
@@ -13,12 +13,14 @@ import pytest
 
 from cases_photometric import H, W, K, analytic_image
 from factors.image_ops import BilinearImage
-from factors.photometric import PhotometricParams, make_host_patch, sqrt_weights, temporal_eval
+from factors.photometric import (PhotometricParams, Shutter, make_host_patch, rolled_bearings,
+                                 sqrt_weights, temporal_eval)
 from factors.trackframe_kernel import track_rows
 
 
-@pytest.mark.parametrize("seed,use_var", [(1, False), (2, True), (3, True)])
-def test_track_rows_match_the_numpy_residual(seed: int, use_var: bool) -> None:
+@pytest.mark.parametrize("seed,use_var,rolling", [(1, False, False), (2, True, False), (3, True, False),
+                                                  (4, True, True)])
+def test_track_rows_match_the_numpy_residual(seed: int, use_var: bool, rolling: bool) -> None:
     rng = np.random.default_rng(seed)
     ref, new = (BilinearImage(analytic_image(rng).render()) for _ in range(2))
     n = 40
@@ -28,7 +30,8 @@ def test_track_rows_match_the_numpy_residual(seed: int, use_var: bool) -> None:
     var = rng.uniform(0.0, 0.05, n) if use_var else np.zeros(n)
     T = gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.1)
     ab_i, ab_j = np.array([0.1, 3.0]), np.array([-0.05, 7.0])
-    ev = temporal_eval(gtsam.Pose3(), T, rho, ab_i, ab_j, patch, new, K, gtsam.Pose3())
+    sh = Shutter(1e-4, rng.normal(0, 0.5, 6), rng.normal(0, 0.5, 6)) if rolling else None
+    ev = temporal_eval(gtsam.Pose3(), T, rho, ab_i, ab_j, patch, new, K, gtsam.Pose3(), shutter=sh)
     sw = sqrt_weights(ev, patch, PhotometricParams(4.0, 50.0, None), var if use_var else 0.0)
     oob = 2.0
     r_ref = np.where(ev.valid, sw * ev.r, oob).reshape(-1)
@@ -36,10 +39,15 @@ def test_track_rows_match_the_numpy_residual(seed: int, use_var: bool) -> None:
     N, P = patch.intensity.shape
     r_w, J = np.empty(N * P), np.empty((N * P, 8))
     r_raw, valid = np.empty((N, P)), np.empty((N, P), bool)
-    track_rows(patch.bearing, patch.intensity, patch.grad_sq, patch.valid, rho, var,
+    if rolling:
+        bearing, sv = rolled_bearings(patch.bearing, sh.line_time_s * patch.uv[:, 1], sh.host)
+        rs = (sv, sh.target[:3].copy(), sh.target[3:].copy(), sh.line_time_s, K.fy, K.cy)
+    else:
+        bearing, rs = patch.bearing, (np.zeros((n, 3)), np.zeros(3), np.zeros(3), 0.0, 0.0, 0.0)
+    track_rows(bearing, patch.intensity, patch.grad_sq, patch.valid, rho, var,
                T.inverse().rotation().matrix(), T.inverse().translation(), np.array([K.fx, K.fy, K.cx, K.cy]),
                new._stack, math.exp(ab_j[0] - ab_i[0]), ab_i[1], ab_j[1], 50.0 ** 2, 2 * 4.0 ** 2,
-               oob, r_w, J, r_raw, valid)
+               oob, r_w, J, r_raw, valid, *rs)
     assert 0 < valid.sum() < valid.size
     np.testing.assert_array_equal(valid, ev.valid)
     np.testing.assert_allclose(r_w, r_ref, rtol=1e-10, atol=1e-10)

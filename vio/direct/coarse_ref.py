@@ -21,7 +21,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors.photometric import Pinhole
+from factors.photometric import Pinhole, Shutter, rolled_bearings
 from vio.backend.graph import X
 from vio.direct.trackframe import TrackingReference, make_reference
 
@@ -30,25 +30,38 @@ from vio.direct.trackframe import TrackingReference, make_reference
 _MARGIN_PX = 4.0
 
 
-def host_in_camera(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def host_in_camera(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.ndarray,
+                   shutter: Shutter | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The points at host pixels ``uv_h`` (N, 2, undistorted, intrinsics ``K`` in both
     cameras) with inverse depths ``rho_h`` (N,, 1/m) in host camera h, seen from camera c
     (``T_c_h`` the host camera in c): pixels (N, 2), inverse depths (N,, 1/m) and a mask
     (N,) of those more than 1 mm in front of c (the others' pixels and depths are
-    placeholders)."""
-    q = K.unproject(uv_h) @ T_c_h.rotation().matrix().T + rho_h[:, None] * T_c_h.translation()   # rho_h p_c
+    placeholders). ``shutter`` (host = h's camera twist, target = c's): each point from
+    its host row's time to c's row that sees it (``factors.photometric.Shutter``); the
+    inverse depth is then c's at that row's time."""
+    f = K.unproject(uv_h)
+    rolling = shutter is not None and shutter.line_time_s > 0.0
+    if rolling:
+        fr, sv = rolled_bearings(f[:, None, :], shutter.line_time_s * uv_h[:, 1], shutter.host)
+        f = fr[:, 0] + rho_h[:, None] * sv
+    R, t = T_c_h.rotation().matrix(), T_c_h.translation()
+    q = f @ R.T + rho_h[:, None] * t   # rho_h p_c
+    if rolling:
+        z = np.where(q[:, 2] > 1e-9, q[:, 2], 1.0)
+        s = shutter.line_time_s * (K.fy * q[:, 1] / z + K.cy)
+        w, v = np.asarray(shutter.target[:3], float), np.asarray(shutter.target[3:], float)
+        q = q - s[:, None] * (np.cross(w, q) + rho_h[:, None] * v)
     front = q[:, 2] > 1e-3 * np.maximum(rho_h, 1e-6)
     q = np.where(front[:, None], q, 1.0)
     return K.project(q), rho_h / q[:, 2], front
 
 
 def moved_points(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.ndarray,
-                 shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+                 shape: tuple[int, int], shutter: Shutter | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (M, 2) and inverse depths (M,) in camera c of the points of
     :func:`host_in_camera` in front of c and inside its ``shape`` (H, W) image less a
     margin."""
-    uv, rho, ok = host_in_camera(K, T_c_h, uv_h, rho_h)
+    uv, rho, ok = host_in_camera(K, T_c_h, uv_h, rho_h, shutter)
     h, w = shape
     ok &= (rho_h > 0) & (uv[:, 0] >= _MARGIN_PX) & (uv[:, 0] <= w - 1 - _MARGIN_PX)
     ok &= (uv[:, 1] >= _MARGIN_PX) & (uv[:, 1] <= h - 1 - _MARGIN_PX)
@@ -70,14 +83,15 @@ def window_reference(image, K: Pinhole, T_w_c: gtsam.Pose3, own: tuple[np.ndarra
                      cell_px: float, cfg) -> TrackingReference:
     """The reference of the keyframe whose camera is ``T_w_c``: its ``image`` (H, W, or
     its pyramid), ``own`` points (pixels (N, 2), inverse depths (N,), variances (N,)),
-    and the ``hosts``' points ((T_w_ch, pixels (M, 2), inverse depths (M,)), newest host
-    first; their variances taken as 0: refined by several keyframes), one per cell;
-    ``ab`` its affine, ``cfg`` the ``TrackConfig``."""
+    and the ``hosts``' points ((T_w_ch, pixels (M, 2), inverse depths (M,)[, the host's
+    ``Shutter`` into this keyframe]), newest host first; their variances taken as 0:
+    refined by several keyframes), one per cell; ``ab`` its affine, ``cfg`` the
+    ``TrackConfig``."""
     shape = (image.shape if isinstance(image, np.ndarray) else image[0].image.shape)[:2]
     uvs, rhos, vars_ = [], [], []
     T_c_w = T_w_c.inverse()
-    for T_w_ch, uv_h, rho_h in hosts:
-        uv, rho = moved_points(K, T_c_w.compose(T_w_ch), uv_h, rho_h, shape)
+    for T_w_ch, uv_h, rho_h, *sh in hosts:
+        uv, rho = moved_points(K, T_c_w.compose(T_w_ch), uv_h, rho_h, shape, *sh)
         uvs.append(uv)
         rhos.append(rho)
         vars_.append(np.zeros(len(rho)))
@@ -90,13 +104,16 @@ def window_reference(image, K: Pinhole, T_w_c: gtsam.Pose3, own: tuple[np.ndarra
 
 
 def keyframe_reference(prev, ab: np.ndarray, T_w_cp: gtsam.Pose3, live: list, values: gtsam.Values,
-                       T_b_c: gtsam.Pose3, cfg) -> TrackingReference:
+                       T_b_c: gtsam.Pose3, cfg, shutter_of=None) -> TrackingReference:
     """:func:`window_reference` of keyframe ``prev`` (``vio.direct.keyframe.KeyframeData``,
     camera ``T_w_cp``) with the ``live`` points of the window's hosts (``(k, pixels,
     inverse depths, indices)``, oldest host first: ``PhotometricSource.live_points``),
-    their cameras from ``values``' X(k) and ``T_b_c``; ``cfg`` the ``TrackConfig``. The
+    their cameras from ``values``' X(k) and ``T_b_c``; ``cfg`` the ``TrackConfig``;
+    ``shutter_of(h)``: host h's ``Shutter`` into ``prev`` (None: global shutter). The
     keyframe's coarse pyramid levels are dropped again afterwards."""
-    hosts = [(values.atPose3(X(h)).compose(T_b_c), uv, rho) for h, uv, rho, _ in live[::-1] if h != prev.k]
+    sh = shutter_of or (lambda h: None)
+    hosts = [(values.atPose3(X(h)).compose(T_b_c), uv, rho, sh(h)) for h, uv, rho, _ in live[::-1]
+             if h != prev.k]
     ref = window_reference(prev.pyramid(cfg.levels), prev.K, T_w_cp, (prev.uv, prev.idepth, prev.idepth_var),
                            hosts, ab, cfg.window_cell_px, cfg)
     prev.release_pyramid()

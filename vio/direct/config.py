@@ -182,8 +182,8 @@ class PointsConfig:
     b (a drift of ~0.3 per update along the affine gauge) relinearized every host factor
     of the window at every relinearization check. ``use_track_guess``: TrackFrame's pose
     replaces the IMU prediction as the keyframe's initial guess when it is ``ok`` and within
-    ``track_gate_m`` / ``track_gate_rad`` of the prediction (not with a rolling shutter:
-    TrackFrame does not model one, and its pose then pulls the window off). The backend settings these
+    ``track_gate_m`` / ``track_gate_rad`` of the prediction (with a rolling shutter
+    TrackFrame models it as the factors do; unmodelled, its pose pulled the window off). The backend settings these
     modes need (iSAM2 relinearization, direct mode's keyframe parallax) are mode
     defaults in ``vio.modes.MODE_DEFAULTS``, so a YAML file overrides them.
     ``exposure_td`` (off by default): while the backend estimates td

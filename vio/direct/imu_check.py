@@ -45,17 +45,18 @@ def visual_guess(T_w_c0: gtsam.Pose3, T_w_c1: gtsam.Pose3, t0_ns: int, t1_ns: in
 
 
 def free_alignment(cfg, kfs: dict, vals: gtsam.Values, prev, kd, T_w_cp: gtsam.Pose3,
-                   T_b_c: gtsam.Pose3, ab: np.ndarray, ref=None) -> tuple | None:
+                   T_b_c: gtsam.Pose3, ab: np.ndarray, ref=None, shutter=None) -> tuple | None:
     """TrackFrame of the keyframe ``kd`` against ``prev`` (its camera at ``T_w_cp``, affine
-    ``ab``; ``ref`` its TrackFrame reference, default its own points) without the IMU
-    prior, from :func:`window_guess` (``cfg``: ``DirectConfig``): (its converged result,
-    the body pose T_w_b), or None (no guess, a numerical failure, no convergence)."""
+    ``ab``; ``ref`` its TrackFrame reference, default its own points; ``shutter`` their
+    rolling shutter) without the IMU prior, from :func:`window_guess` (``cfg``:
+    ``DirectConfig``): (its converged result, the body pose T_w_b), or None (no guess, a
+    numerical failure, no convergence)."""
     guess = window_guess(kfs, vals, prev, T_w_cp, T_b_c, kd.t_ns)
     if guess is None:
         return None
     ref = prev.reference(ab, cfg) if ref is None else ref
     try:
-        res = track_frame(ref, kd.pyramid(cfg.track.levels), guess, ab, cfg.track, None)
+        res = track_frame(ref, kd.pyramid(cfg.track.levels), guess, ab, cfg.track, None, shutter)
     except (ArithmeticError, np.linalg.LinAlgError):
         return None
     return (res, body_pose(T_w_cp, res.T_kf_new, T_b_c)) if res.ok else None

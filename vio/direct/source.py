@@ -233,8 +233,12 @@ class PhotometricSource(TrackFrameStep):
         lt = float(self.rig.cam0.line_time_s)
         if lt <= 0.0:
             return None
-        Ad = self.rig.T_b_c.inverse().AdjointMap()
-        return HostShutter(lt, np.array([Ad @ self.twists.get(f, np.zeros(6)) for f in frames]))
+        return HostShutter(lt, np.array([self._cam_twist(f) for f in frames]))
+
+    def _cam_twist(self, f: int) -> np.ndarray:
+        """Keyframe f's cam0 twist [omega_c, v_c] (6,): Ad(T_c_b) of its body twist (zero
+        without one)."""
+        return self.rig.T_b_c.inverse().AdjointMap() @ self.twists.get(f, np.zeros(6))
 
     def _twist(self, f: int, T_w_b: gtsam.Pose3, v_w: np.ndarray, bias) -> np.ndarray:
         """Keyframe f's body twist [omega_b, v_b] (6,), ``vio.backend.motion.body_motion``."""

@@ -13,8 +13,9 @@ import time
 import gtsam
 import numpy as np
 
+from factors.photometric import Shutter
 from vio.backend.bridge import contradicts, within_hold
-from vio.backend.graph import A, X
+from vio.backend.graph import A, B, X
 from vio.direct.coarse_ref import keyframe_reference
 from vio.direct.imu_check import free_alignment, pose_offset, window_guess
 from vio.direct.keyframe import KeyframeData
@@ -27,7 +28,7 @@ log = logging.getLogger(__name__)
 class TrackFrameStep:
     """The host class provides ``est`` (the estimator), ``rig``, ``cfg`` (``DirectConfig``),
     ``kfs`` (keyframe -> ``KeyframeData``), ``tracks``, ``contradicted_k``,
-    ``_latest_in_graph`` and ``live_points``."""
+    ``_latest_in_graph``, ``live_points``, ``_twist`` and ``_cam_twist``."""
 
     def _track(self, k: int, kd: KeyframeData, pred: gtsam.NavState, v: gtsam.Values) -> np.ndarray:
         """TrackFrame of keyframe k against the previous keyframe; the guess of A(k)."""
@@ -48,8 +49,9 @@ class TrackFrameStep:
         prior = None if held else MotionPrior.from_imu(T_init, self.est.pim, dt_ns * 1e-9, self.cfg.track)
         t0 = time.perf_counter()
         ref = self._reference(prev, ab_p, T_w_cp)
+        sh = self._track_shutter(k, prev, pred, v)
         try:
-            res = track_frame(ref, kd.pyramid(self.cfg.track.levels), T_init, ab_p, self.cfg.track, prior)
+            res = track_frame(ref, kd.pyramid(self.cfg.track.levels), T_init, ab_p, self.cfg.track, prior, sh)
         except (ArithmeticError, np.linalg.LinAlgError) as exc:   # a numerical failure is a failure
             res = None
             log.warning("TrackFrame failed at keyframe %d (%s: %s); IMU prediction kept", k,
@@ -57,7 +59,7 @@ class TrackFrameStep:
         ms = (time.perf_counter() - t0) * 1e3
         # held, the run above was already the prior-free one from the visual guess
         if (res is None or not res.ok) and self.cfg.track.retry_visual and not held:
-            ab = self._retry(k, kd, prev, ab_p, T_w_cp, v, ref)
+            ab = self._retry(k, kd, prev, ab_p, T_w_cp, v, ref, sh)
             if ab is not None:
                 self._release(kd)
                 return ab
@@ -67,13 +69,11 @@ class TrackFrameStep:
             return ab_p
         T_tr = body_pose(T_w_cp, res.T_kf_new, T_b_c)
         dist, ang = pose_offset(T_pred, T_tr)
-        # TrackFrame has no rolling-shutter model: with one, its pose is no guess (the sim12
-        # render, 30 us a row: direct 26.3 mm with it, 6.1 mm without; benchmarks/README.md)
-        used = bool(res.ok and pc.use_track_guess and self.rig.cam0.line_time_s <= 0.0
-                    and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
+        used = bool(res.ok and pc.use_track_guess and dist <= pc.track_gate_m and ang <= pc.track_gate_rad)
         if res.ok and self.cfg.track.retry_visual and self._contradicts(k, dist, ang, dt_ns, held):
             used = True      # converged against the IMU prior, and still away from the prediction
-            free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p, ref)
+            free = None if held else free_alignment(self.cfg, self.kfs, vals, prev, kd, T_w_cp, T_b_c, ab_p,
+                                                    ref, sh)
             if free is not None and free[0].rmse <= res.rmse:   # the prior is the contradicted IMU (imu_check)
                 res, T_tr = free
                 dist, ang = pose_offset(T_pred, T_tr)
@@ -89,13 +89,14 @@ class TrackFrameStep:
         return np.array([res.a, res.b]) if res.ok else ab_p
 
     def _retry(self, k: int, kd: KeyframeData, prev: KeyframeData, ab_p: np.ndarray, T_w_cp: gtsam.Pose3,
-               v: gtsam.Values, ref) -> np.ndarray | None:
+               v: gtsam.Values, ref, shutter: Shutter | None = None) -> np.ndarray | None:
         """After a failed TrackFrame: once more without the IMU prior from the visual guess
         (``vio.direct.imu_check``). Where it converges as ``bridge.contradicts`` says (3 cm from
         the IMU prediction, within 1 degree), the IMU is contradicted: its pose becomes
         X(k)'s guess and the affine guess of A(k) is returned; else None."""
         t0 = time.perf_counter()
-        free = free_alignment(self.cfg, self.kfs, self.est.values, prev, kd, T_w_cp, self.rig.T_b_c, ab_p, ref) \
+        free = free_alignment(self.cfg, self.kfs, self.est.values, prev, kd, T_w_cp, self.rig.T_b_c, ab_p, ref,
+                              shutter) \
             if self.est.cfg.bridge.imu_check else None
         if free is None:
             return None
@@ -107,13 +108,25 @@ class TrackFrameStep:
         self.tracks.append(TrackRecord(k, kd.t_ns, res.rmse, True, True, dist, ang, (time.perf_counter() - t0) * 1e3))
         return np.array([res.a, res.b])
 
+    def _track_shutter(self, k: int, prev: KeyframeData, pred: gtsam.NavState, v: gtsam.Values) -> Shutter | None:
+        """TrackFrame's rolling shutter of keyframe k against ``prev``: cam0's line time, the
+        camera twists of ``prev`` (kept at its insertion) and of k (from the prediction);
+        None for a global shutter."""
+        lt = float(self.rig.cam0.line_time_s)
+        if lt <= 0.0:
+            return None
+        tw_k = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
+        return Shutter(lt, self._cam_twist(prev.k), self.rig.T_b_c.inverse().AdjointMap() @ tw_k)
+
     def _reference(self, prev: KeyframeData, ab: np.ndarray, T_w_cp: gtsam.Pose3):
         """TrackFrame's reference of ``prev`` (camera ``T_w_cp``, affine ``ab``): its own
         points and the window's (``vio.direct.coarse_ref``, ``TrackConfig.window_cell_px``)."""
         if self.cfg.track.window_cell_px <= 0:
             return prev.reference(ab, self.cfg)
+        lt = float(self.rig.cam0.line_time_s)
+        shutter_of = (lambda h: Shutter(lt, self._cam_twist(h), self._cam_twist(prev.k))) if lt > 0.0 else None
         return keyframe_reference(prev, ab, T_w_cp, self.live_points(), self.est.values, self.rig.T_b_c,
-                                  self.cfg.track)
+                                  self.cfg.track, shutter_of)
 
     def _release(self, kd: KeyframeData) -> None:
         """Drop keyframe ``kd``'s coarse pyramid levels after its TrackFrame; with the

@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
-from factors.photometric import HostPatch, Pinhole, make_host_patch
+from factors.photometric import HostPatch, Pinhole, Shutter, make_host_patch, rolled_bearings
 from factors.photometric_kernel import MAX_LOG_GAIN
 from factors.trackframe_kernel import track_rows
 from vio.conventions import pose_from_matrix
@@ -149,14 +149,30 @@ def make_reference(image: np.ndarray | Sequence[BilinearImage], uv: np.ndarray, 
     return TrackingReference(tuple(Ks), tuple(patches), idepth, var, np.asarray(ab, float))
 
 
+def _shutter_args(ref: TrackingReference, lev: int, shutter: Shutter | None) -> tuple:
+    """The kernel's rolling-shutter arguments at level ``lev``: (bearings moved to the
+    keyframe's row 0, their rho part sv (N, 3), the new frame's twist (omega, v), line
+    time, level 0's fy and cy: rows are full-resolution rows); no shutter: the plain
+    bearings, zeros and line time 0."""
+    b = ref.patches[lev].bearing
+    if shutter is None or shutter.line_time_s <= 0.0:
+        return b, np.zeros((len(ref.idepth), 3)), np.zeros(3), np.zeros(3), 0.0, 0.0, 0.0
+    lt = float(shutter.line_time_s)
+    bw, sv = rolled_bearings(b, lt * ref.patches[0].uv[:, 1], shutter.host)
+    tw = np.asarray(shutter.target, float)
+    return bw, sv, tw[:3].copy(), tw[3:].copy(), lt, ref.K[0].fy, ref.K[0].cy
+
+
 def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg: TrackConfig,
-                   prior: MotionPrior | None = None):
+                   prior: MotionPrior | None = None, shutter: Shutter | None = None):
     """Residual function x = (T_kf_new, ab) -> (whitened r, J (m, 8)) of one level, the
-    ``prior`` rows last."""
+    ``prior`` rows last; ``shutter``: the keyframe's (host) and new frame's (target)
+    rolling shutter."""
     patch, K = ref.patches[lev], ref.K[lev]
     N, P = patch.intensity.shape
     var = ref.idepth_var if cfg.use_idepth_var else np.zeros(N)
-    args = (np.ascontiguousarray(patch.bearing), np.ascontiguousarray(patch.intensity),
+    bearing, *rolling = _shutter_args(ref, lev, shutter)
+    args = (np.ascontiguousarray(bearing), np.ascontiguousarray(patch.intensity),
             np.ascontiguousarray(patch.grad_sq), np.ascontiguousarray(patch.valid),
             np.ascontiguousarray(ref.idepth, float), np.ascontiguousarray(var, float))
     Kv = np.array([K.fx, K.fy, K.cx, K.cy])
@@ -171,7 +187,7 @@ def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg:
         # the factors' gain bound: a diverged affine a must not overflow (inf intensities)
         s = math.exp(min(max(float(ab[0]) - ab_i[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
         track_rows(*args, Ti.rotation().matrix(), Ti.translation(), Kv, stack, s, ab_i[1], float(ab[1]),
-                   cfg.grad_c ** 2, 2.0 * cfg.sigma_I ** 2, cfg.oob_residual, r_w, J, r_raw, valid)
+                   cfg.grad_c ** 2, 2.0 * cfg.sigma_I ** 2, cfg.oob_residual, r_w, J, r_raw, valid, *rolling)
 
     def fun(x):
         evaluate(x)
@@ -208,9 +224,12 @@ def body_pose(T_w_cp: gtsam.Pose3, T_cp_c: gtsam.Pose3, T_b_c: gtsam.Pose3) -> g
 
 def track_frame(ref: TrackingReference, image: np.ndarray | Sequence[BilinearImage],
                 T_kf_new_init: gtsam.Pose3 = _IDENTITY, ab_init: tuple[float, float] | None = None,
-                config: TrackConfig = TrackConfig(), prior: MotionPrior | None = None) -> TrackResult:
+                config: TrackConfig = TrackConfig(), prior: MotionPrior | None = None,
+                shutter: Shutter | None = None) -> TrackResult:
     """Align ``image`` (H, W, or its ``image_pyramid``) to the keyframe ``ref``, starting from ``T_kf_new_init`` and
-    ``ab_init`` (default: the keyframe's affine), with an optional motion ``prior``."""
+    ``ab_init`` (default: the keyframe's affine), with an optional motion ``prior``;
+    ``shutter``: both images' rolling shutter (``factors.photometric.Shutter``, host = the
+    keyframe camera's twist, target = the new camera's)."""
     cfg = config
     if ref.levels < cfg.levels:
         raise ValueError(f"reference has {ref.levels} levels, config asks for {cfg.levels}")
@@ -219,7 +238,7 @@ def track_frame(ref: TrackingReference, image: np.ndarray | Sequence[BilinearIma
     pyr = image_pyramid(image, cfg.levels)
     stats, total = [], 0
     for lev in reversed(range(cfg.levels)):
-        fun, rmse = _level_problem(ref, lev, pyr[lev], cfg, prior)
+        fun, rmse = _level_problem(ref, lev, pyr[lev], cfg, prior, shutter)
         max_it = cfg.iters[cfg.levels - 1 - lev]
         res = levenberg_marquardt(fun, x, cfg.lm(max_it), retract=_retract,
                                   n_plain=0 if prior is None else 6)
