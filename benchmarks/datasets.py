@@ -227,11 +227,11 @@ SIM_SEQUENCES = (
 )
 # The photometric modes run on the exposure-change sequence (issue #6: their benchmark is
 # stereo with exposure changes; stereo runs there too, the features-alone reference for
-# hybrid) and on the global-shutter one with td 10 ms: by default the photometric term
-# holds td at the sync layer's value (benchmarks/README.md, td in the photometric modes),
-# and that row shows what it costs. Not on the rolling-shutter one (no rolling-shutter
-# model in the photometric factor: 50-70 mm there).
-PHOTOMETRIC_SEQUENCES = ("stereo", "stereo-exposure")
+# hybrid), on the global-shutter one with td 10 ms (the photometric term holds td at the
+# stereo pre-pass's value, benchmarks/README.md, td in the photometric modes) and on the
+# rolling-shutter one (modelled in the photometric factors and TrackFrame since stop 73;
+# 50-70 mm before).
+PHOTOMETRIC_SEQUENCES = ("stereo", "stereo-rs30us", "stereo-exposure")
 
 
 def sim_spec(mode: str, label: str, seed: int, seconds: float, stereo: bool = True,
@@ -248,7 +248,7 @@ def image_datasets(mode: str, quick: bool) -> list[DatasetSpec]:
     for ``stereo``, ``direct`` and ``hybrid``, the real MH_05 cam0 images in flight with
     their real IMU (300 frames; quick: 120; td unknown) for ``mono``, then the rendered
     ones: the stereo ones (global shutter, rolling shutter, exposure changes) for
-    ``stereo``, the global-shutter and exposure-change ones for ``direct`` and ``hybrid``,
+    ``stereo``, ``direct`` and ``hybrid``,
     the cam0-only one for ``mono``; 20 s (quick: 8 s)."""
     seconds = 8.0 if quick else 20.0
     want_stereo = mode != "mono"
