@@ -134,14 +134,14 @@ def test_registry_lists_image_specs():
         assert c.seconds == 20.0 and c.image_scale == 1.0 and c.seed not in (0, 3, 5)   # unseen seeds
         assert c.stereo == (s.mode != "mono")
     assert sorted(s.sim_config().line_time_s for s in by_mode["stereo"]) == [0.0, 0.0, 30e-6]
-    # the photometric modes run on the exposure-change sequence and the global-shutter one
-    # with td 10 ms, as stereo does (not on the rolling-shutter one)
+    # the photometric modes run on every stereo render, as stereo does: exposure changes,
+    # global shutter with td 10 ms and rolling shutter (modelled since stop 73)
     for m in ("direct", "hybrid"):
         runs = by_mode[m]
-        assert sorted(s.sim_config().exposure_changes for s in runs) == ["none", "smooth"]
-        assert all(s.sim_config().line_time_s == 0.0 for s in runs)
-        assert {s.group for s in runs} <= {s.group for s in by_mode["stereo"]}
-    assert len(specs) == 8 and len({s.key() for s in specs}) == 4    # one rendering per sequence
+        assert sorted(s.sim_config().exposure_changes for s in runs) == ["none", "none", "smooth"]
+        assert sorted(s.sim_config().line_time_s for s in runs) == [0.0, 0.0, 30e-6]
+        assert {s.group for s in runs} == {s.group for s in by_mode["stereo"]}
+    assert len(specs) == 10 and len({s.key() for s in specs}) == 4    # one rendering per sequence
     quick, _ = ds.registry(quick=True, modes=["stereo", "mono"])
     quick = [s for s in quick if s.sim is not None]
     assert [s.sim_config().seconds for s in quick] == [8.0] * 4
