@@ -60,6 +60,18 @@ def test_cam1_from_T_cn_cnm1_and_nested_imu(euroc_kalibr, tmp_path):
     assert read_kalibr_imu(tmp_path / "i.yaml").calib.gyro_random_walk == data.imu_calib.gyro_random_walk
 
 
+def test_rolling_shutter_line_delay_round_trips(euroc_kalibr, tmp_path):
+    """Kalibr's rolling-shutter ``line_delay`` (s per row) is the cameras' line time
+    (the photometric and KLT modes' row times); a global-shutter camchain writes none."""
+    import dataclasses
+    data, d = euroc_kalibr
+    assert "line_delay" not in (d / "camchain.yaml").read_text()
+    cams = [dataclasses.replace(c, line_time_s=3.4e-5) for c in (data.cam0.calib, data.cam1.calib)]
+    write_camchain(tmp_path / "rs.yaml", cams)
+    assert [c.line_time_s for c in read_camchain(tmp_path / "rs.yaml").cams] == [3.4e-5, 3.4e-5]
+    assert read_camchain(d / "camchain.yaml").cams[0].line_time_s == 0.0
+
+
 @pytest.mark.parametrize("edit, words", [
     (lambda c: c["cam0"].pop("intrinsics"), "missing key cam0.intrinsics"),
     (lambda c: c["cam1"].pop("resolution"), "missing key cam1.resolution"),
@@ -69,6 +81,8 @@ def test_cam1_from_T_cn_cnm1_and_nested_imu(euroc_kalibr, tmp_path):
     (lambda c: c["cam0"].update(camera_model="omni"), "cam0.camera_model 'omni' unsupported"),
     (lambda c: c["cam0"].update(distortion_coeffs=[0.1, "x", 0, 0]), "cam0.distortion_coeffs must be"),
     (lambda c: c["cam0"].update(timeshift_cam_imu="soon"), "cam0.timeshift_cam_imu must be a number"),
+    (lambda c: c["cam1"].update(line_delay=0.002), "cam1.line_delay 0.002 s per row out of range"),
+    (lambda c: c["cam0"].update(line_delay="fast"), "cam0.line_delay must be a number"),
     (lambda c: c.pop("cam0"), "missing key cam0"),
     (lambda c: (c["cam1"].pop("T_cam_imu"), c["cam1"].pop("T_cn_cnm1")), "missing key cam1.T_cn_cnm1"),
 ])

@@ -6,7 +6,8 @@ camchain (``camchain-imucam-*.yaml``): ``cam0``, ``cam1``, ... each with
 ``T_cam_imu`` (4x4: IMU point -> camera point, so ``T_b_c = T_cam_imu^-1``), for camN
 (N > 0) ``T_cn_cnm1`` (cam N-1 point -> cam N point; used when ``T_cam_imu`` is
 absent), optional ``timeshift_cam_imu`` (s, ``t_imu = t_cam + shift``: the initial
-td) and ``rostopic``. imu.yaml: ``accelerometer_noise_density``,
+td), ``line_delay`` (s per image row of a rolling shutter, as Kalibr's rolling-shutter
+calibration writes it; absent or 0: global shutter) and ``rostopic``. imu.yaml: ``accelerometer_noise_density``,
 ``accelerometer_random_walk``, ``gyroscope_noise_density``, ``gyroscope_random_walk``,
 ``update_rate`` and optional ``rostopic`` / ``T_i_b``, flat or under ``imu0:``.
 
@@ -120,7 +121,11 @@ def _camera(block: dict, name: str, path: Path, T_cam_imu: np.ndarray) -> Camera
         raise DataError(path, f"{where}distortion_model {dist_model!r} not in {sorted(_MODELS)}")
     dist = _floats(block, "distortion_coeffs", 4, where, path) if dist_model != "none" else ()
     T_b_c = pose_from_matrix(np.linalg.inv(T_cam_imu))
-    return CameraCalib(T_b_c, (fx, fy, cx, cy), _MODELS[dist_model], dist, (w, h), name=name)
+    line = _scalar(block, "line_delay", where, path, positive=False, default=0.0)
+    if not 0.0 <= line < 1e-3:
+        raise DataError(path, f"{where}line_delay {line!r} s per row out of range [0, 1e-3)")
+    return CameraCalib(T_b_c, (fx, fy, cx, cy), _MODELS[dist_model], dist, (w, h), name=name,
+                       line_time_s=line)
 
 
 def read_camchain(path: str | Path) -> KalibrCameras:
@@ -185,6 +190,8 @@ def write_camchain(path: str | Path, cams: list[CameraCalib], topics: list[str] 
                  "distortion_model": "radtan" if model == "none" else model,
                  "intrinsics": [float(v) for v in c.intrinsics], "resolution": [int(v) for v in c.resolution],
                  "rostopic": topics[i] if topics else f"/cam{i}/image_raw", "timeshift_cam_imu": float(td_s)}
+        if c.line_time_s > 0.0:
+            block["line_delay"] = float(c.line_time_s)
         if prev is not None:
             block["T_cn_cnm1"] = _rows(T_cam_imu @ np.linalg.inv(prev))
             block["cam_overlaps"] = [i - 1]
