@@ -1,0 +1,73 @@
+"""The rolling-shutter warp of the photometric factors (``factors.photometric.Shutter``)
+against the simulator's exact row geometry (``vio.sim``: row r of an image exposed at
+stamp + td + r * line_time, the camera at its trajectory pose of that instant): the
+Jacobian suite checks the warp's derivatives, this checks that the warp is the camera."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from factors.photometric import HostPatch, Pinhole, Shutter, temporal_eval
+from vio.sim.config import SimConfig
+from vio.sim.render import sim_camera
+from vio.sim.trajectory import make_trajectory
+
+LINE_S = 30e-6
+
+
+class _Flat:
+    """A target image that is everywhere valid (only the warp's pixels are compared)."""
+
+    def sample(self, u, v):
+        z = np.zeros_like(u)
+        return z, z, z, np.ones_like(u, bool)
+
+
+def test_shutter_warp_is_the_simulated_rolling_shutter_camera():
+    """Random points seen by the rolling-shutter camera of a rendered loop (seed 12's
+    trajectory, 30 us a row: 14.4 ms readout) in two frames 50-400 ms apart: the warp from
+    the host pixel and its depth at the host row's time, with the cameras' row-0 poses
+    and twists, lands within 0.1 px of where the simulator's camera sees the point
+    (measured: median 0.004 px, max 0.06 px); the global-shutter warp is off by 0.3 px
+    median, 2 px at worst."""
+    cfg = SimConfig(seconds=20.0, seed=12, line_time_s=LINE_S)
+    traj = make_trajectory(cfg)
+    cam = sim_camera("cam0", 1.0, 20.0, LINE_S)
+    K = Pinhole(*cam.intrinsics)
+    w, h = cam.resolution
+
+    def T_w_c(t: float) -> gtsam.Pose3:
+        s = traj.sample(np.array([t]))
+        return gtsam.Pose3(gtsam.Rot3(s.R_w_b[0]), s.p_w[0]).compose(cam.T_b_c)
+
+    def twist(t: float, dt: float = 1e-5) -> np.ndarray:
+        return gtsam.Pose3.Logmap(T_w_c(t).between(T_w_c(t + dt))) / dt
+
+    def seen(p_w: np.ndarray, t0: float) -> tuple[np.ndarray, float]:
+        """Pixel and z-depth where the camera of the frame whose row 0 is at t0 sees p_w."""
+        v = h / 2.0
+        for _ in range(20):             # the row that sees the point, at that row's pose
+            p = T_w_c(t0 + v * LINE_S).transformTo(p_w)
+            u, v = K.fx * p[0] / p[2] + K.cx, K.fy * p[1] / p[2] + K.cy
+        return np.array([u, v]), float(p[2])
+
+    rng = np.random.default_rng(0)
+    err, err_gs = [], []
+    while len(err) < 150:
+        t_h = rng.uniform(1.0, 18.0)
+        t_j = t_h + rng.choice([0.05, 0.1, 0.2, 0.4])
+        uv0, z0 = rng.uniform([50, 20], [w - 50, h - 20]), rng.uniform(1.5, 6.0)
+        p_w = T_w_c(t_h + uv0[1] * LINE_S).transformFrom(np.append(K.unproject(uv0)[:2], 1.0) * z0)
+        uv_h, z_h = seen(p_w, t_h)
+        uv_j, _ = seen(p_w, t_j)
+        if not (0 < uv_j[0] < w and 0 < uv_j[1] < h):
+            continue
+        host = HostPatch(uv_h[None], K.unproject(uv_h[None, None]), np.zeros((1, 1)), np.zeros((1, 1)),
+                         np.ones((1, 1), bool))
+        for sh, out in ((Shutter(LINE_S, twist(t_h), twist(t_j)), err), (None, err_gs)):
+            ev = temporal_eval(T_w_c(t_h), T_w_c(t_j), np.array([1.0 / z_h]), np.zeros(2), np.zeros(2),
+                               host, _Flat(), K, gtsam.Pose3(), shutter=sh)
+            out.append(np.linalg.norm(ev.uv[0, 0] - uv_j))
+    assert np.median(err) < 0.01 and np.max(err) < 0.1, (np.median(err), np.max(err))
+    assert np.median(err_gs) > 0.1
