@@ -150,7 +150,7 @@ def _stereo_case(rng, frames, stereo_track, key=9):
         right = stereo_track and f != 6
         obs[f] = Obs(rng.normal(0, 0.2, 2), rng.normal(0, 0.3, 2), 50.0 * f,
                      rng.normal(0, 0.2, 2) if right else None, rng.normal(0, 0.3, 2) if right else None,
-                     float(rng.normal(0, 0.001)))
+                     float(rng.normal(0, 0.001)), 50.0 * f + 7.0 if right else float("nan"))
     return Track(key, obs, graph.L(key), frames[0])
 
 
@@ -194,6 +194,9 @@ def test_track_factor_equals_the_stereo_and_landmark_builders(stereo_track, fram
     rows = track_rows([(tr, frames, 0.4)], True, False, None, None, 0.1, 1.0, vmax, 1e-5)[0]
     got = member_factor(track_member(tr, frames, rows, rig, cfg, 1e-3, at))
     _same_linearization(ref, got, vals)
+    # a cam1 observation is timed by cam1's own row (rolling shutter), not cam0's
+    want = [(tr.obs[f].right_row * 1e-5 - tr.obs[f].td_obs) for f in frames if tr.obs[f].right_uv is not None]
+    np.testing.assert_allclose(rows.offset[rows.right], want, rtol=0, atol=1e-15)
     assert all(np.array_equal(shift_ref[f][0], tr.td_shift[f][0]) and shift_ref[f][1] == tr.td_shift[f][1]
                for f in frames)
 

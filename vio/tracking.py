@@ -147,7 +147,8 @@ class ImageStage:
         fr = tf.to_feature_frame(0)
         if self.stereo:
             fr = dataclasses.replace(fr, right_uv=np.asarray(tf.right_uv, float).copy(),
-                                     right_velocity=np.asarray(tf.right_velocity, float).copy())
+                                     right_velocity=np.asarray(tf.right_velocity, float).copy(),
+                                     right_row=np.asarray(tf.right_px[:, 1], float).copy())
         # images decoded from files (``load``) stay here: a pair is ~0.7 MB to send back
         return dataclasses.replace(pkt, features=fr, images=() if pkt.image_files else pkt.images)
 

@@ -275,7 +275,9 @@ def build_stereo_factor(track: Track, C: gtsam.Pose3 | StereoRig, cfg: BackendCo
                         else np.asarray(rvel)[st_i], vmax)
     st = make_stereo_track(X(frames[0]), obs[0].uv, keys, uv, C, anchor_vel=vel[0],
                            vel=np.vstack([vel[1:], rvel]), anchor_offset=off[0],
-                           offset=np.r_[off[1:], off[st_i]],
+                           offset=np.r_[off[1:], row_offsets(np.array([obs[i].right_time_row for i in st_i]),
+                                                            np.array([obs[i].td_obs for i in st_i]),
+                                                            line_time_s)],
                            right=[False] * (len(frames) - 1) + [True] * len(st_i))
     kernel, td_key = _vision_options(cfg)
     by_key = {X(f): at.poses[f] for f in frames} if at else {}

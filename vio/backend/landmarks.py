@@ -19,7 +19,8 @@ class Obs:
     ``right_uv`` / ``right_velocity``: the same point in cam1 (None without stereo);
     ``td_obs`` (s): the part of the td variable its keyframe's time already holds (the
     sync layer's offset for this frame minus the estimator's constant ``td_applied_s``),
-    so the observation is ``td - td_obs`` after its keyframe."""
+    so the observation is ``td - td_obs`` after its keyframe; ``right_row``: cam1's pixel
+    row of ``right_uv`` (its rolling-shutter time; NaN: unknown, ``row`` stands in)."""
 
     uv: np.ndarray
     velocity: np.ndarray
@@ -27,17 +28,25 @@ class Obs:
     right_uv: np.ndarray | None = None
     right_velocity: np.ndarray | None = None
     td_obs: float = 0.0
+    right_row: float = float("nan")
+
+    @property
+    def right_time_row(self) -> float:
+        """The row whose rolling-shutter time the cam1 observation has: ``right_row``, or
+        cam0's ``row`` where it is unknown."""
+        return self.right_row if np.isfinite(self.right_row) else self.row
 
     @cached_property
     def packed(self) -> np.ndarray:
-        """(11,): ``uv``, ``velocity``, ``row``, ``td_obs``, 1.0 with a cam1 match (else 0),
-        ``right_uv``, ``right_velocity`` (zeros without): one row of
+        """(12,): ``uv``, ``velocity``, ``row``, ``td_obs``, 1.0 with a cam1 match (else 0),
+        ``right_uv``, ``right_velocity`` (zeros without), ``right_time_row``: one row of
         ``vio.backend.track_arrays.track_rows``' gather."""
         r = self.right_uv is not None
         if r and self.right_velocity is None:
             raise ValueError("an observation with right_uv needs right_velocity")
         right = (*self.right_uv, *self.right_velocity) if r else (0.0, 0.0, 0.0, 0.0)
-        return np.array([*self.uv, *self.velocity, self.row, self.td_obs, float(r), *right], float)
+        return np.array([*self.uv, *self.velocity, self.row, self.td_obs, float(r), *right,
+                         self.right_time_row], float)
 
 
 @dataclass

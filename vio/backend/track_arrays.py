@@ -86,7 +86,8 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
     v0, rv = np.empty((len(P), 2)), np.empty((len(P), 2))
     uv, vel, offset = np.empty((m, 2)), np.empty((m, 2)), np.empty(m)
     target, right = np.empty(m, np.int64), np.zeros(m, np.bool_)
-    _fill(start, rstart, idx, uv_o, meas, has_r, ruv, rmeas, off, lam, pred, rig_c1 is not None, stereo,
+    roff = row_offsets(P[:, 11], P[:, 5], line_time_s)      # cam1's own rows (rolling shutter)
+    _fill(start, rstart, idx, uv_o, meas, has_r, ruv, rmeas, off, roff, lam, pred, rig_c1 is not None, stereo,
           R, t, w, v, R10, t01, float(min_depth), float(gate), float(vmax), v0, rv, uv, vel, target, right,
           offset)
     basis = tangent_basis(uv)
@@ -102,10 +103,10 @@ def track_rows(items: list[tuple[Track, list[int], float]], stereo: bool, predic
 
 def gather(groups: list[list[Obs]], line_time_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The observations of every group (one landmark's, in its frames' order) in one
-    array: ``P`` (N, 11) their ``Obs.packed`` rows, ``start`` (G + 1,) where each group's
+    array: ``P`` (N, 12) their ``Obs.packed`` rows, ``start`` (G + 1,) where each group's
     rows begin (and the total), ``off`` (N,) their row offsets (s, ``graph.row_offsets``
     at ``line_time_s``)."""
-    P = np.array([o.packed for obs in groups for o in obs], float).reshape(-1, 11)
+    P = np.array([o.packed for obs in groups for o in obs], float).reshape(-1, 12)
     start = run_starts(np.array([len(obs) for obs in groups], np.int64))
     return P, start, row_offsets(P[:, 4], P[:, 5], line_time_s)
 
@@ -118,7 +119,7 @@ def run_starts(counts: np.ndarray) -> np.ndarray:
 
 
 @_njit
-def _fill(start, rstart, idx, uv_o, meas, has_r, ruv, rmeas, off, lam, pred, pred_r, stereo,
+def _fill(start, rstart, idx, uv_o, meas, has_r, ruv, rmeas, off, roff, lam, pred, pred_r, stereo,
           R, t, w, v, R10, t01, min_depth, gate, vmax, v0, rv, uv, vel, target, right, offset):
     """Per track j (observations ``start[j]:start[j+1]``, rows ``rstart[j]:rstart[j+1]``):
     the cam0 / cam1 td velocities ``v0`` / ``rv`` (predicted where ``pred[j]``, cam1 only
@@ -143,7 +144,7 @@ def _fill(start, rstart, idx, uv_o, meas, has_r, ruv, rmeas, off, lam, pred, pre
             continue
         for i in range(e - s):
             if has_r[s + i]:
-                uv[r], vel[r], target[r], right[r], offset[r] = ruv[s + i], rv[s + i], i, True, off[s + i]
+                uv[r], vel[r], target[r], right[r], offset[r] = ruv[s + i], rv[s + i], i, True, roff[s + i]
                 r += 1
 
 
@@ -155,5 +156,5 @@ def compile_kernel() -> None:
     b1 = np.zeros(1, np.bool_)
     R, t, w, v = _NO_TABLE
     R10, t01 = _NO_RIG
-    _fill(i1, i1, i1[:1].copy(), z2, z2, b1, z2, z2, z1, z1, b1, False, False, R, t, w, v, R10, t01,
+    _fill(i1, i1, i1[:1].copy(), z2, z2, b1, z2, z2, z1, z1, z1, b1, False, False, R, t, w, v, R10, t01,
           0.1, 1.0, 1.0, z2.copy(), z2.copy(), z2.copy(), z2.copy(), np.zeros(1, np.int64), b1.copy(), z1.copy())

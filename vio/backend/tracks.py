@@ -59,14 +59,15 @@ class LandmarkManager(TrackFactorBuilder):
         td_obs = self.est.rates.td_obs(k)
         right = fr.right_uv if fr.right_uv is not None else np.full((len(fr.ids), 2), np.nan)
         rvel = fr.right_velocity if fr.right_velocity is not None else np.zeros((len(fr.ids), 2))
-        for lid, uv, vel, row, ruv, rv in zip(fr.ids, fr.uv, fr.velocity, fr.row, right, rvel):
+        rrow = fr.right_row if fr.right_row is not None else np.full(len(fr.ids), np.nan)
+        for lid, uv, vel, row, ruv, rv, rr in zip(fr.ids, fr.uv, fr.velocity, fr.row, right, rvel, rrow):
             lid = int(lid)
             if lid in self.rejected:
                 continue
             has_r = bool(np.all(np.isfinite(ruv)))
             o = Obs(np.asarray(uv, float), np.asarray(vel, float), float(row),
                     np.asarray(ruv, float) if has_r else None, np.asarray(rv, float) if has_r else None,
-                    float(td_obs))
+                    float(td_obs), float(rr) if has_r else float("nan"))
             if not self.points.observe(lid, k, o):
                 self.tracks.setdefault(lid, Track(lid)).obs[k] = o
 

@@ -145,7 +145,8 @@ class FeatureFrame:
     coordinates (x/z, y/z) in this camera; ``velocity`` (M, 2) normalized-plane
     velocity in 1/s (zeros when unknown); ``row`` (M,) image row in pixels used
     for rolling shutter (NaN when unknown). ``right_uv`` / ``right_velocity`` (M, 2):
-    the same features in the second camera (NaN rows where unmatched; None: mono).
+    the same features in the second camera (NaN rows where unmatched; None: mono);
+    ``right_row`` (M,) their cam1 pixel rows (NaN or None: unknown, cam0's row is used).
     """
 
     t_ns: int
@@ -155,6 +156,7 @@ class FeatureFrame:
     row: np.ndarray
     right_uv: np.ndarray | None = None
     right_velocity: np.ndarray | None = None
+    right_row: np.ndarray | None = None
 
     @classmethod
     def empty(cls, t_ns: int) -> "FeatureFrame":
@@ -166,7 +168,7 @@ class FeatureFrame:
         def pick(a):
             return None if a is None else a[keep]
         return FeatureFrame(self.t_ns, self.ids[keep], self.uv[keep], self.velocity[keep], self.row[keep],
-                            pick(self.right_uv), pick(self.right_velocity))
+                            pick(self.right_uv), pick(self.right_velocity), pick(self.right_row))
 
 
 @dataclass(frozen=True)
