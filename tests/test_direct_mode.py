@@ -22,6 +22,7 @@ from vio.io.euroc import load_euroc
 from vio.io.types import FeatureFrame
 from vio.pipeline import PipelineConfig
 from vio.run import default_config, load_config, run_dataset
+from vio.run_summary import summary
 
 
 def test_point_eval_matches_pairwise_temporal_eval():
@@ -347,4 +348,7 @@ def test_rolling_shutter_is_modelled_in_the_photometric_modes(tmp_path):
             res = run_dataset(d, _small(mode == "hybrid"), mode=mode)
             assert res.recoveries == 0
             ate[name] = evaluate(*res.arrays(), d.groundtruth).ate_rmse
+            told = [ln for ln in summary(res, d) if ln.startswith("rolling shutter")]
+            assert told == ([] if name == "global" else ["rolling shutter 60.0 us a row (14.3 ms readout), "
+                                                          "each row at its own time"])
         assert ate["rolling"] < bound and ate["rolling"] < 0.7 * ate["global"], f"{mode}: {ate}"

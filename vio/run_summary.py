@@ -44,6 +44,10 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
                   f"gyro bias       {np.round(last.bias.gyroscope(), 4)} rad/s",
                   f"accel bias      {np.round(last.bias.accelerometer(), 4)} m/s^2",
                   f"td              {last.td_s * 1e3:.2f} ms"]
+        lt, rows = data.cam0.calib.line_time_s, data.cam0.calib.resolution[1]
+        if lt > 0.0:
+            lines.append(f"rolling shutter {lt * 1e6:.1f} us a row ({lt * (rows - 1) * 1e3:.1f} ms readout), "
+                         "each row at its own time")
         t = last.T_b_c.translation()
         d = data.cam0.calib.T_b_c.between(last.T_b_c)
         moved = np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))), np.linalg.norm(d.translation()) * 1e3
