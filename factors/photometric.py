@@ -241,17 +241,18 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     gu = np.where(valid, gx * K.fx / zs, 0.0)
     gv = np.where(valid, gy * K.fy / zs, 0.0)
     drdq = np.stack([gu, gv, -(gu * qs[..., 0] + gv * qs[..., 1]) / zs], axis=-1)
-    drdrho = drdq @ t
-    if rolling:
-        # dq_s/dq = I - s [omega]x - a (ds/dq)^T, ds/dq = line_time fy [0, 1/z, -y/z^2]
-        zq = np.where(valid, z, 1.0)
-        da = np.sum(drdq * a, -1)
-        drdrho = -s[..., 0] * (drdq @ v)
-        drdq = drdq - s * _cross(drdq, np.broadcast_to(w, q.shape), np.empty(q.shape))
-        k = shutter.line_time_s * K.fy / zq
-        drdq[..., 1] -= da * k
-        drdq[..., 2] += da * k * q[..., 1] / zq
-        drdrho = drdrho + drdq @ t + np.sum((drdq @ R) * sv, -1)
+    if not rolling:
+        return q, np.stack([u, v_px], -1), I, drdq, valid, drdq @ t, f
+    # dq_s/dq = I - s [omega]x - a (ds/dq)^T, ds/dq = line_time fy [0, 1/z, -y/z^2]; rho
+    # enters q_s directly (-s rho v) and through q (t + R sv)
+    zq = np.where(valid, z, 1.0)
+    da = np.sum(drdq * a, -1)
+    drdrho = -s[..., 0] * (drdq @ v)
+    drdq = drdq - s * _cross(drdq, np.broadcast_to(w, q.shape), np.empty(q.shape))
+    k = shutter.line_time_s * K.fy / zq
+    drdq[..., 1] -= da * k
+    drdq[..., 2] += da * k * q[..., 1] / zq
+    drdrho = drdrho + drdq @ t + np.sum((drdq @ R) * sv, -1)
     return q, np.stack([u, v_px], -1), I, drdq, valid, drdrho, f
 
 

@@ -43,7 +43,7 @@ import math
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.photometric_warp import _warp, _warp_rs
+from factors.photometric_warp import _warp, _warp_rs, rho_direction
 
 MAX_LOG_GAIN = 5.0
 """Relative log-gains a_j - a_h are clipped to +-5 (x150) so a diverging affine state can
@@ -68,10 +68,7 @@ def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, hube
     ``lt`` the target's rolling shutter (:func:`_warp_rs`)."""
     P = bearing.shape[1]
     c0, c1, c2 = sv[p, 0], sv[p, 1], sv[p, 2]
-    # d(host point)/drho through the warp: t + R sv
-    e0 = t[0] + R[0, 0] * c0 + R[0, 1] * c1 + R[0, 2] * c2
-    e1 = t[1] + R[1, 0] * c0 + R[1, 1] * c1 + R[1, 2] * c2
-    e2 = t[2] + R[2, 0] * c0 + R[2, 1] * c1 + R[2, 2] * c2
+    e0, e1, e2 = rho_direction(R, t, sv, p)
     smp = np.empty(3)
     dq = np.empty(3)
     Hrr = 0.0
@@ -208,9 +205,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
             s = math.exp(min(max(ab_t[m, 0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
             R, t, Rjb, tw, tv = R_ji[m], t_ji[m], R_jb[m], TW[m], TV[m]
             c0, c1, c2 = sv[p, 0], sv[p, 1], sv[p, 2]
-            e0 = t[0] + R[0, 0] * c0 + R[0, 1] * c1 + R[0, 2] * c2    # t + R sv
-            e1 = t[1] + R[1, 0] * c0 + R[1, 1] * c1 + R[1, 2] * c2
-            e2 = t[2] + R[2, 0] * c0 + R[2, 1] * c1 + R[2, 2] * c2
+            e0, e1, e2 = rho_direction(R, t, sv, p)
             ss = 0.0
             nv = 0
             for k in range(P):

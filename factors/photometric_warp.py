@@ -63,6 +63,16 @@ def _warp(f0, f1, f2, rho, R, t, K, stack, smp, dq):
 
 
 @_njit
+def rho_direction(R, t, sv, p):
+    """d q / d rho of point p's scaled warp q = R (f + rho sv[p]) + rho t: t + R sv[p]
+    (3 floats; t without a rolling shutter, where sv is zero)."""
+    c0, c1, c2 = sv[p, 0], sv[p, 1], sv[p, 2]
+    return (t[0] + R[0, 0] * c0 + R[0, 1] * c1 + R[0, 2] * c2,
+            t[1] + R[1, 0] * c0 + R[1, 1] * c1 + R[1, 2] * c2,
+            t[2] + R[2, 0] * c0 + R[2, 1] * c1 + R[2, 2] * c2)
+
+
+@_njit
 def _warp_rs(f0, f1, f2, rho, R, t, K, stack, smp, dq, w, vel, lt, rf, rc, clip):
     """:func:`_warp` (``clip``; else :func:`_warp_any`) in a rolling-shutter target
     (``factors.photometric.Shutter``: twist ``w``, ``vel`` of the target camera, ``lt`` s

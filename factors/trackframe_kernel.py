@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from factors.jit import njit as _njit
-from factors.photometric_warp import _warp_any, _warp_rs
+from factors.photometric_warp import _warp_any, _warp_rs, rho_direction
 
 
 @_njit
@@ -47,9 +47,7 @@ def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b
     for p in range(N):
         rp = rho[p]
         o0, o1, o2 = sv[p, 0] * rp, sv[p, 1] * rp, sv[p, 2] * rp   # rho sv
-        e0 = t[0] + R[0, 0] * sv[p, 0] + R[0, 1] * sv[p, 1] + R[0, 2] * sv[p, 2]    # t + R sv
-        e1 = t[1] + R[1, 0] * sv[p, 0] + R[1, 1] * sv[p, 1] + R[1, 2] * sv[p, 2]
-        e2 = t[2] + R[2, 0] * sv[p, 0] + R[2, 1] * sv[p, 1] + R[2, 2] * sv[p, 2]
+        e0, e1, e2 = rho_direction(R, t, sv, p)
         for k in range(P):
             row = p * P + k
             valid[p, k] = False
