@@ -133,7 +133,7 @@ def _run_flight(args: argparse.Namespace, cfg: SimConfig, t0: float) -> int:
     """``vio sim OUT --flight SRC``: images along SRC's real flight (``vio.sim.flight``).
     ``--seconds`` (None: to the end of the flight), ``--td``, ``--seed``, ``--mono`` /
     ``--stereo``, ``--scale`` (undistorted cameras), ``--exposure``, ``--image-noise``,
-    ``--distort`` and ``--blur-ms`` apply; the motion options do not."""
+    ``--distort``, ``--blur-ms`` and ``--line-time`` apply; the motion options do not."""
     from vio.errors import DataError
     from vio.sim.flight import render_flight
     from vio.sim.optics import FlightOptics

@@ -13,8 +13,9 @@ real-image sets stop after 15-16 s.
 Frames: the room spans ``[0, L]`` (z up, gravity -z as in the EuRoC ground-truth world);
 the written ground truth is the fused trajectory shifted by ``offset_w`` into it (a
 translation, so SE3-aligned errors are unchanged). Clocks: a frame stamped ``s`` shows the
-pose at ``s + td`` (``tracks_cfg.td_s``; global shutter; with motion blur the mean over an
-exposure centred there). The cameras are ``vio.sim.render.sim_camera``'s (EuRoC
+pose at ``s + td`` (``tracks_cfg.td_s``; with motion blur the mean over an exposure centred
+there); with a rolling shutter (``sim_cfg.line_time_s``) sensor row r shows the pose at
+``s + td + r * line_time``, through the lens where there is one (``DistortedView.sensor_row``). The cameras are ``vio.sim.render.sim_camera``'s (EuRoC
 intrinsics and extrinsics, no distortion) or, with ``FlightOptics.distortion``, the
 source's own calibrations rendered through their distortion (``vio.sim.optics``).
 """
@@ -94,16 +95,17 @@ def render_flight(src: Path, out: Path, tracks_cfg: TrackGenConfig, sim_cfg: Sim
     if len(t_ns) < 2:
         raise ValueError(f"{src}: fewer than 2 camera frames fit the ground truth and IMU from "
                          f"{tracks_cfg.start_s} s for {tracks_cfg.duration_s} s")
-    fused = fused_truth(src, tracks_cfg, imu, gt, gt_p, gt_q, t_ns, td)
+    fused = fused_truth(src, tracks_cfg, imu, gt, gt_p, gt_q, t_ns, td, _readout_nodes(t_ns + td, sim_cfg))
     size, offset = flight_room(fused.p_w)
     cfg = _room_config(sim_cfg, size)
     scene = scene_around(cfg, (fused.p_w + offset)[:, :2])
     atlas = build_textures(scene, cfg.texels_per_m, cfg.seed)
     names = ("cam0", "cam1") if cfg.stereo else ("cam0",)
     if optics.distortion:
-        cams = [replace(load_camera(src / n / "sensor.yaml", n), rate_hz=tracks_cfg.rate_hz) for n in names]
+        cams = [replace(load_camera(src / n / "sensor.yaml", n), rate_hz=tracks_cfg.rate_hz,
+                        line_time_s=cfg.line_time_s) for n in names]
     else:
-        cams = [sim_camera(n, cfg.image_scale, tracks_cfg.rate_hz, 0.0) for n in names]
+        cams = [sim_camera(n, cfg.image_scale, tracks_cfg.rate_hz, cfg.line_time_s) for n in names]
     mav0.mkdir(parents=True)
     exposure = _render_frames(mav0, cams, scene, atlas, cfg, optics, fused, offset, t_ns, td, progress)
     n_imu = _write_inertial(src, mav0, imu, fused, offset, t_ns, td, tracks_cfg.imu_margin_s)
@@ -112,7 +114,7 @@ def render_flight(src: Path, out: Path, tracks_cfg: TrackGenConfig, sim_cfg: Sim
     truth_path = out / "sim_truth.yaml"
     write_truth_yaml(truth_path, {
         "generator": "vio.sim.flight", "source": str(src), "start_s": tracks_cfg.start_s,
-        "duration_s": tracks_cfg.duration_s, "td_s": tracks_cfg.td_s, "line_time_s": 0.0,
+        "duration_s": tracks_cfg.duration_s, "td_s": tracks_cfg.td_s, "line_time_s": cfg.line_time_s,
         "convention": "image stamp + td = exposure time (IMU clock); the IMU rows are the source's",
         "offset_w": [float(x) for x in offset], "gravity_w": [0.0, 0.0, -9.81],
         "exposure_model": "image = clip(exp(a) * radiance + b + noise)", "exposure_file": exposure_path.name,
@@ -142,12 +144,11 @@ def _render_frames(mav0: Path, cams: list[CameraCalib], scene, atlas, cfg: SimCo
         from tqdm import tqdm
         frames = tqdm(frames, desc="vio sim", unit="frame")
     for j in frames:
-        p_w, R_w = interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, t_ns[j] + td + dt)
         for k, (cam, view, wr) in enumerate(zip(cams, views, writers)):
             rcam = cam if view is None else view.virtual
-            radiance = np.mean([render(scene, atlas, rcam, *camera_row_poses(
-                R[None].repeat(rcam.height, 0), p[None].repeat(rcam.height, 0), cam.T_b_c))[0]
-                for p, R in zip(p_w, R_w)], axis=0)
+            pose_of = None if view is None or cam.line_time_s == 0.0 else view.sensor_row
+            radiance = np.mean([render(scene, atlas, rcam, *_sensor_poses(fused, offset, cam, rcam.height, t + td),
+                                       pose_of)[0] for t in t_ns[j] + dt], axis=0)
             if view is not None:
                 radiance = view(radiance)
             a, b = exposure[cam.name][0][j], exposure[cam.name][1][j]
@@ -157,6 +158,31 @@ def _render_frames(mav0: Path, cams: list[CameraCalib], scene, atlas, cfg: SimCo
     for wr in writers:
         wr.close(f"vio sim along a real flight (EuRoC intrinsics and T_BS, {lens})")
     return exposure
+
+
+def _readout_nodes(exposure_ns: np.ndarray, cfg: SimConfig, n: int = 4) -> np.ndarray | None:
+    """Trajectory nodes ``n`` evenly spaced over each frame's rolling-shutter readout after
+    its exposure time ``exposure_ns`` (None for a global shutter): rows between them
+    interpolate over ~3.6 ms at a 14-ms readout (a slerp over a 50-ms frame period is up to
+    ~1 mrad off the IMU's motion at 5 rad/s^2)."""
+    if cfg.line_time_s == 0.0:
+        return None
+    readout = (cfg.resolution[1] - 1) * cfg.line_time_s * 1e9
+    return (exposure_ns[:, None] + np.round(np.arange(1, n + 1) * readout / n).astype(np.int64)).ravel()
+
+
+def _sensor_poses(fused, offset: np.ndarray, cam: CameraCalib, rows: int,
+                  t0_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera poses of ``cam``'s sensor rows, row r at ``t0_ns + r * line_time`` ((H,3,3),
+    (H,3)); for a global shutter one pose repeated ``rows`` times (the rendered image's
+    height)."""
+    if cam.line_time_s == 0.0:
+        p_w, R_w = interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, np.array([t0_ns]))
+        return camera_row_poses(R_w.repeat(rows, 0), p_w.repeat(rows, 0), cam.T_b_c)
+    h = cam.resolution[1]
+    t = t0_ns + np.round(np.arange(h) * cam.line_time_s * 1e9).astype(np.int64)
+    p_w, R_w = interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, t)
+    return camera_row_poses(R_w, p_w, cam.T_b_c)
 
 
 def _write_inertial(src: Path, mav0: Path, imu, fused, offset: np.ndarray, t_ns: np.ndarray,

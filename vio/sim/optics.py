@@ -6,7 +6,11 @@ that every distorted pixel's undistorted ray falls inside it) and resampled thro
 distortion: output pixel ``(u, v)`` (OpenCV pixel centres) takes the pinhole image at
 ``K_v [undistort(u, v), 1]`` (bilinear). The textures are mip-mapped for the pinhole
 footprint, so the resampling adds no aliasing where the lens magnifies (the centre of a
-barrel lens) and blurs slightly where it shrinks (the corners), as a real lens.
+barrel lens) and blurs slightly where it shrinks (the corners), as a real lens. With a
+rolling shutter the sensor's rows are exposed one after the other, and a sensor row is a
+curve in the pinhole image (up to ~50 rows from a straight one at the corners of a k1 =
+-0.28 lens): ``sensor_row`` gives each pinhole pixel the sensor row it lands on, whose
+time the renderer gives it (``vio.sim.render.render``'s ``pose_of``).
 
 ``FlightOptics``: the distortion switch, and the exposure duration rendered as motion
 blur (``blur_s``, the mean of ``blur_samples`` renders at poses spread evenly over the
@@ -52,7 +56,9 @@ def blur_offsets(optics: FlightOptics) -> np.ndarray:
 
 class DistortedView:
     """A pinhole render resampled through ``calib``'s distortion (see module docstring).
-    ``virtual``: the pinhole camera to render (same pose and focal lengths)."""
+    ``virtual``: the pinhole camera to render (same pose and focal lengths);
+    ``sensor_row`` (Hv, Wv) int64: the sensor row (0..H-1, nearest, clipped) that each
+    pixel of the ``virtual`` image lands on through the lens."""
 
     def __init__(self, calib: CameraCalib) -> None:
         cam = Camera(calib)
@@ -68,6 +74,10 @@ class DistortedView:
                                distortion=(0.0, 0.0, 0.0, 0.0), line_time_s=0.0)
         self.map_x = (xy[:, 0] * fx + cx).reshape(h, w).astype(np.float32)
         self.map_y = (xy[:, 1] * fy + cy).reshape(h, w).astype(np.float32)
+        wv, hv = size
+        xv, yv = np.meshgrid(np.arange(wv, dtype=np.float64), np.arange(hv, dtype=np.float64))
+        raw = cam.project_normalized(np.column_stack([(xv.ravel() - cx) / fx, (yv.ravel() - cy) / fy]))
+        self.sensor_row = np.clip(np.rint(raw[:, 1]), 0, h - 1).astype(np.int64).reshape(hv, wv)
 
     def __call__(self, radiance: np.ndarray) -> np.ndarray:
         """The distorted image (H, W) float32 of a ``virtual`` render (Hv, Wv)."""

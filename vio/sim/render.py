@@ -2,7 +2,9 @@
 
 Images are undistorted pinhole renders: pixel ``(x, y)`` (integer = pixel centre)
 looks along ``R_w_c [(x - cx)/fx, (y - cy)/fy, 1]``. Each image row has its own
-camera pose ``T_w_c`` (rolling shutter; repeat one pose for a global shutter).
+camera pose ``T_w_c`` (rolling shutter; repeat one pose for a global shutter), or each
+pixel one of a table of poses (``pose_of``: a rolling shutter seen through a lens, whose
+sensor rows are curves in this pinhole image, ``vio.sim.optics.DistortedView.sensor_row``).
 Textures are sampled trilinearly from the mip pyramid at the level that matches
 the pixel footprint on the surface, which keeps the images free of aliasing shimmer.
 """
@@ -142,13 +144,14 @@ def _sample(tex, table, sid, u, v, lvl, density):
 
 
 @njit(cache=True, fastmath=True, parallel=True)
-def _render_kernel(R_rows, p_rows, K, width, rects, cyls, tex, table, density, img, depth):
+def _render_kernel(R_rows, p_rows, pose_of, K, width, rects, cyls, tex, table, density, img, depth):
     fx, fy, cx, cy = K[0], K[1], K[2], K[3]
-    for r in prange(R_rows.shape[0]):
-        R = R_rows[r]
-        ox, oy, oz = p_rows[r, 0], p_rows[r, 1], p_rows[r, 2]
+    for r in prange(img.shape[0]):
         yc = (r - cy) / fy
         for x in range(width):
+            i = pose_of[r, x]
+            R = R_rows[i]
+            ox, oy, oz = p_rows[i, 0], p_rows[i, 1], p_rows[i, 2]
             xc = (x - cx) / fx
             n = math.sqrt(xc * xc + yc * yc + 1.0)
             a, b, c = xc / n, yc / n, 1.0 / n
@@ -167,21 +170,29 @@ def _render_kernel(R_rows, p_rows, K, width, rects, cyls, tex, table, density, i
 
 
 def render(scene: Scene, atlas: TextureAtlas, calib: CameraCalib, R_w_c: np.ndarray,
-           p_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Render one image with per-row camera poses.
+           p_w_c: np.ndarray, pose_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Render one image with per-row (or per-pixel) camera poses.
 
-    ``R_w_c`` (H,3,3) and ``p_w_c`` (H,3): camera-in-world pose of each row (H = image
-    height). Returns ``(image, depth)``, both (H, W) float32: radiance 0..255 before
-    exposure and noise, and camera z-depth in metres (``inf`` where nothing is hit).
+    ``R_w_c`` (N,3,3) and ``p_w_c`` (N,3): camera-in-world poses; without ``pose_of`` one
+    per row (N = image height H), else pixel (y, x) is seen from pose ``pose_of[y, x]``
+    ((H, W) integers in [0, N)). Returns ``(image, depth)``, both (H, W) float32: radiance
+    0..255 before exposure and noise, and camera z-depth in metres (``inf`` where nothing
+    is hit).
     """
     w, h = calib.resolution
     R = np.ascontiguousarray(R_w_c, dtype=np.float64)
     p = np.ascontiguousarray(p_w_c, dtype=np.float64)
-    if R.shape != (h, 3, 3) or p.shape != (h, 3):
-        raise ValueError(f"render: need per-row poses of shape ({h},3,3)/({h},3), got {R.shape}/{p.shape}")
+    n = h if pose_of is None else len(R)
+    if R.shape != (n, 3, 3) or p.shape != (n, 3):
+        raise ValueError(f"render: need poses of shape ({n},3,3)/({n},3), got {R.shape}/{p.shape}")
+    if pose_of is None:
+        pose_of = np.broadcast_to(np.arange(h, dtype=np.int64)[:, None], (h, w))
+    elif pose_of.shape != (h, w) or pose_of.min() < 0 or pose_of.max() >= n:
+        raise ValueError(f"render: pose_of must be ({h},{w}) indices in [0,{n}), got {pose_of.shape}")
+    pose_of = np.ascontiguousarray(pose_of, dtype=np.int64)
     img = np.empty((h, w), np.float32)
     depth = np.empty((h, w), np.float32)
-    _render_kernel(R, p, np.asarray(calib.intrinsics, float), w, scene.rects, scene.cyls,
+    _render_kernel(R, p, pose_of, np.asarray(calib.intrinsics, float), w, scene.rects, scene.cyls,
                    atlas.data, atlas.table, atlas.texels_per_m, img, depth)
     return img, depth
 

@@ -277,15 +277,18 @@ def _render_times(cfg: TrackGenConfig, gt_t: np.ndarray, t_ns: np.ndarray) -> np
 
 
 def fused_truth(src: Path, cfg: TrackGenConfig, imu, gt, gt_p: np.ndarray, gt_q: np.ndarray,
-                 t_ns: np.ndarray, td: int) -> FusedTrajectory:
+                 t_ns: np.ndarray, td: int, extra_ns: np.ndarray | None = None) -> FusedTrajectory:
     """The IMU-consistent trajectory at the frame stamps and exposure times (and half a
     frame period beyond both ends, inside the IMU margin), its ground-truth pose priors
-    where ``cfg.gt_priors`` says."""
+    where ``cfg.gt_priors`` says; ``extra_ns``: more nodes, without priors (a rolling
+    shutter's rows, ``vio.sim.flight``), so that poses between nodes interpolate over
+    milliseconds rather than a frame period."""
     v = imu.table.values
     data = ImuData(imu.t_ns, v[:, 0:3], v[:, 3:6])
     ends = np.concatenate([t_ns, t_ns + td])
     pad = int(round(0.5e9 / cfg.rate_hz))    # a row either side brackets every exposure
-    nodes = np.unique(np.concatenate([ends, [ends.min() - pad, ends.max() + pad]]))
+    extra = np.zeros(0, np.int64) if extra_ns is None else np.asarray(extra_ns, np.int64)
+    nodes = np.unique(np.concatenate([ends, extra, [ends.min() - pad, ends.max() + pad]]))
     mask = None
     if cfg.gt_priors == "exposure":          # the stamps (td != 0) follow from the IMU
         mask = np.isin(nodes, t_ns + td) | (nodes < ends.min()) | (nodes > ends.max())
