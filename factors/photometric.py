@@ -59,6 +59,7 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.image_ops import ImageSampler
+from factors.photometric_warp import pixel_row_s, sensor_rows
 
 PATTERN = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]],
                    dtype=np.float64)
@@ -181,11 +182,16 @@ class Shutter:
     is at p_c - s (omega x p_c + v) in the camera of the row exposed s later.
     ``host``, ``target``: the two cameras' twists (constants of the factor, as the KLT
     factors' predicted image velocities). The host's whole pattern takes its centre row's
-    time (``HostPatch.uv``; 2 rows are ~60 us); the target row is the projected row."""
+    time (``HostPatch.uv``; 2 rows are ~60 us); the target row is the projected row.
+    ``host_rows``, ``target_rows``: the two cameras' ``factors.photometric_warp.row_model``
+    where a lens bends the sensor rows (a row's time is its *sensor* row's); None: the
+    undistorted pinhole row."""
 
     line_time_s: float
     host: np.ndarray
     target: np.ndarray
+    host_rows: np.ndarray | None = None
+    target_rows: np.ndarray | None = None
 
 
 def rolled_bearings(bearing: np.ndarray, row_s: np.ndarray, twist: np.ndarray
@@ -207,7 +213,8 @@ def host_points(host: HostPatch, rho: np.ndarray, shutter: Shutter | None
     at row time s_h (its centre row's) moved back to row 0, f + s_h (omega_h x f) + rho s_h v_h."""
     if shutter is None or shutter.line_time_s == 0.0:
         return host.bearing, np.zeros((len(rho), 1, 3))
-    f, sv = rolled_bearings(host.bearing, shutter.line_time_s * host.uv[:, 1], shutter.host)
+    f, sv = rolled_bearings(host.bearing, pixel_row_s(shutter.line_time_s, host.uv, shutter.host_rows),
+                            shutter.host)
     return f + rho[:, None, None] * sv[:, None, :], sv[:, None, :]
 
 
@@ -227,7 +234,7 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     rolling = shutter is not None and shutter.line_time_s != 0.0
     if rolling:
         w, v = np.asarray(shutter.target[:3], float), np.asarray(shutter.target[3:], float)
-        s = (shutter.line_time_s * (K.fy * q[..., 1] / zs + K.cy))[..., None]
+        s, ds_dx, ds_dy = _target_row_s(shutter, K, q, zs)
         a = _cross(np.broadcast_to(w, q.shape), q, np.empty(q.shape)) + rr * v
         qs = q - s * a
         front &= qs[..., 2] > MIN_Z
@@ -243,17 +250,31 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     drdq = np.stack([gu, gv, -(gu * qs[..., 0] + gv * qs[..., 1]) / zs], axis=-1)
     if not rolling:
         return q, np.stack([u, v_px], -1), I, drdq, valid, drdq @ t, f
-    # dq_s/dq = I - s [omega]x - a (ds/dq)^T, ds/dq = line_time fy [0, 1/z, -y/z^2]; rho
-    # enters q_s directly (-s rho v) and through q (t + R sv)
+    # dq_s/dq = I - s [omega]x - a (ds/dq)^T, ds/dq = ds/dx d(q0/z)/dq + ds/dy d(q1/z)/dq
+    # (without a lens line_time fy [0, 1/z, -y/z^2]); rho enters q_s directly (-s rho v)
+    # and through q (t + R sv)
     zq = np.where(valid, z, 1.0)
     da = np.sum(drdq * a, -1)
     drdrho = -s[..., 0] * (drdq @ v)
     drdq = drdq - s * _cross(drdq, np.broadcast_to(w, q.shape), np.empty(q.shape))
-    k = shutter.line_time_s * K.fy / zq
-    drdq[..., 1] -= da * k
-    drdq[..., 2] += da * k * q[..., 1] / zq
+    kx, ky = ds_dx / zq, ds_dy / zq
+    drdq[..., 0] -= da * kx
+    drdq[..., 1] -= da * ky
+    drdq[..., 2] += da * (kx * q[..., 0] + ky * q[..., 1]) / zq
     drdrho = drdrho + drdq @ t + np.sum((drdq @ R) * sv, -1)
     return q, np.stack([u, v_px], -1), I, drdq, valid, drdrho, f
+
+
+def _target_row_s(shutter: Shutter, K: Pinhole, q: np.ndarray, z: np.ndarray):
+    """Row time s (..., 1) of the target points q (..., 3) (depth ``z``) and its
+    derivatives in q0 / z and q1 / z (...,): the sensor row of ``shutter.target_rows``, or
+    the pinhole row of ``K``."""
+    lt = shutter.line_time_s
+    if shutter.target_rows is None:
+        return (lt * (K.fy * q[..., 1] / z + K.cy))[..., None], np.zeros(z.shape), np.full(z.shape, lt * K.fy)
+    x, y = (q[..., 0] / z).ravel(), (q[..., 1] / z).ravel()
+    row, gx, gy = sensor_rows(np.ascontiguousarray(x), np.ascontiguousarray(y), shutter.target_rows)
+    return (lt * row).reshape(z.shape)[..., None], (lt * gx).reshape(z.shape), (lt * gy).reshape(z.shape)
 
 
 def _affine(host: HostPatch, I: np.ndarray, valid: np.ndarray, ab_i: np.ndarray,

@@ -40,7 +40,7 @@ from factors.adapter import FactorHealth, custom_factor
 from factors.photometric import HostPatch, PhotometricParams, Pinhole, rolled_bearings
 from factors.jit import njit as _njit
 from factors.photometric_kernel import host_system
-from factors.photometric_warp import DARK, SATURATED
+from factors.photometric_warp import DARK, SATURATED, pixel_row_s, row_model
 
 try:
     from numba.typed import List
@@ -108,27 +108,36 @@ class HostShutter:
     pair): ``line_time_s`` s per row and the cam0 twists [omega (rad/s), v (m/s)] in the
     camera frame, ``twists`` (M + 1, 6), host first, then the targets in key order; the
     right camera's is the host's moved by T_c1_c0. Constants of the factor, as
-    ``HostTiming``'s."""
+    ``HostTiming``'s. ``rows``, ``right_rows``: the left and right cameras'
+    ``factors.photometric_warp.row_model`` where a lens bends the sensor rows (None: the
+    undistorted pinhole rows)."""
 
     line_time_s: float
     twists: np.ndarray
+    rows: np.ndarray | None = None
+    right_rows: np.ndarray | None = None
 
 
 def shutter_args(shutter: HostShutter | None, bearing: np.ndarray, uv: np.ndarray, M: int,
-                 T_r_l: gtsam.Pose3) -> tuple:
-    """The kernel's rolling-shutter arguments (bearing', sv, TW, TV, rw, rv, lt): the host
+                 T_r_l: gtsam.Pose3, K: Pinhole, K_r: Pinhole) -> tuple:
+    """The kernel's rolling-shutter arguments (bearing', sv, TW, TV, rw, rv, sh): the host
     bearings moved to row 0 without their rho part, and that part ``sv`` (N, 3)
-    (``factors.photometric.host_points``); the targets' and the right camera's twists;
-    zeros and lt = 0 without a shutter."""
+    (``factors.photometric.host_points``); the targets' and the right camera's twists; the
+    shutter vector (19,) [line time, the left camera's row model, the right's] (pinhole
+    rows of ``K``, ``K_r`` without lens models); zeros without a shutter."""
     z3 = np.zeros(3)
     if shutter is None or shutter.line_time_s == 0.0:
-        return bearing, np.zeros((len(uv), 3)), np.zeros((max(M, 1), 3)), np.zeros((max(M, 1), 3)), z3, z3, 0.0
+        return (bearing, np.zeros((len(uv), 3)), np.zeros((max(M, 1), 3)), np.zeros((max(M, 1), 3)), z3, z3,
+                np.zeros(19))
     tw = np.asarray(shutter.twists, float)
-    bw, sv = rolled_bearings(bearing, shutter.line_time_s * np.asarray(uv, float)[:, 1], tw[0])
+    bw, sv = rolled_bearings(bearing, pixel_row_s(shutter.line_time_s, uv, shutter.rows), tw[0])
     xi_r = T_r_l.AdjointMap() @ tw[0]
     T = tw[1:] if M else np.zeros((1, 6))
+    rm_l = row_model(_kvec(K)) if shutter.rows is None else shutter.rows
+    rm_r = row_model(_kvec(K_r)) if shutter.right_rows is None else shutter.right_rows
+    sh = np.concatenate([[float(shutter.line_time_s)], rm_l, rm_r])
     return (np.ascontiguousarray(bw), sv, np.ascontiguousarray(T[:, :3]),
-            np.ascontiguousarray(T[:, 3:]), xi_r[:3].copy(), xi_r[3:].copy(), float(shutter.line_time_s))
+            np.ascontiguousarray(T[:, 3:]), xi_r[:3].copy(), xi_r[3:].copy(), sh)
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,7 +200,8 @@ def host_linearize(args: list, pts: HostPoints, targets: Sequence[np.ndarray], K
     # a [:, :M] view would be a second Numba signature, ~8 s more to compile on a fresh
     # install (strided for M < M_max, contiguous for M = M_max)
     tm = pts.tmask if update else pts.tmask.copy()
-    rs = shutter if isinstance(shutter, tuple) else shutter_args(shutter, pts.patch.bearing, pts.patch.uv, M, T_rl)
+    rs = shutter if isinstance(shutter, tuple) else shutter_args(shutter, pts.patch.bearing, pts.patch.uv, M, T_rl,
+                                                                 K, stereo.K if stereo is not None else K)
     return host_system(rs[0], pts.patch.intensity, pts.wg, pts.patch.valid, rho, alive,
                        tm, imgs, _kvec(K), R_ji, t_ji, R_jb, T_b_c.rotation().matrix(),
                        T_b_c.translation(), ab_h, ab_t, w0, st, K1,
@@ -298,7 +308,8 @@ def host_residual_fn(pts: HostPoints, targets: Sequence[np.ndarray], K: Pinhole,
     targets = list(targets)
     imgs = target_list(targets, stereo)
     rs = shutter_args(shutter, pts.patch.bearing, pts.patch.uv, len(targets),
-                      stereo.T_r_l if stereo is not None else gtsam.Pose3())
+                      stereo.T_r_l if stereo is not None else gtsam.Pose3(), K,
+                      stereo.K if stereo is not None else K)
 
     def fn(args: list) -> tuple[np.ndarray, np.ndarray]:
         if timing is None:

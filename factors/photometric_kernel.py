@@ -29,8 +29,10 @@ Rolling shutter (``factors.photometric.Shutter``, first order in the row time): 
 host points arrive as ``bearing + rho sv`` (``factors.photometric.host_points``: each
 point moved back from its row's time to the host's row 0), and each target (the right
 camera for the stereo term) is sampled at its row's time along its camera twist
-(``TW``, ``TV``; ``rw``, ``rv``; ``lt`` s per row, 0: global shutter, the same
-arithmetic as without these arguments).
+(``TW``, ``TV``; ``rw``, ``rv``) and the shutter vector ``sh`` (19,) = [line time (s per
+sensor row; 0: global shutter, the same arithmetic as without these arguments), the
+left camera's ``row_model`` (9,: the temporal targets), the right camera's (9,)]
+(``factors.photometric_host.shutter_args``).
 
 Images are (H, W, 3) float64 stacks [I, dI/du, dI/dv] (``BilinearImage._stack``),
 sampled bilinearly with the validity margins of ``BilinearImage``.
@@ -61,11 +63,11 @@ def _huber(e2, k):
 
 
 @_njit
-def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k, tw, tv, lt):
+def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, huber_k, tw, tv, lt, rm):
     """One term of point p at rho, residual I(warp) - b - s I_host (s: gain e^(a_j - a_h),
     b: offset), weight w0 wg: (H_rr, g_r, cost, raw sum r^2, n valid). The host point
     is ``bearing[p, k] + rho sv[p]`` (``factors.photometric.host_points``); ``tw``, ``tv``,
-    ``lt`` the target's rolling shutter (:func:`_warp_rs`)."""
+    ``lt``, ``rm`` the target's rolling shutter (:func:`_warp_rs`)."""
     P = bearing.shape[1]
     c0, c1, c2 = sv[p, 0], sv[p, 1], sv[p, 2]
     e0, e1, e2 = rho_direction(R, t, sv, p)
@@ -82,7 +84,7 @@ def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, hube
         if lt > 0.0:
             ok, q0, q1, q2, u, v, jx = _warp_rs(bearing[p, k, 0] + rho * c0, bearing[p, k, 1] + rho * c1,
                                                 bearing[p, k, 2] + rho * c2, rho, R, t, K, img, smp, dq,
-                                                tw, tv, lt, K[1], K[3], True)
+                                                tw, tv, lt, rm, True)
         else:
             ok, q0, q1, q2, u, v = _warp(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2], rho,
                                          R, t, K, img, smp, dq)
@@ -103,27 +105,27 @@ def _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, b, w0, hube
 
 @_njit
 def _stereo_terms(p, rho, bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, ab_r, st_w, huber_k,
-                  rw, rv, lt):
+                  rw, rv, sh):
     """Static stereo of point p at rho (right affine ``ab_r`` relative to the left; ``rw``,
-    ``rv`` the right camera's twist)."""
+    ``rv`` the right camera's twist, ``sh`` the shutter vector, module docstring)."""
     s = math.exp(min(max(ab_r[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
     return _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl, t_rl, s, ab_r[1], st_w,
-                      huber_k, rw, rv, lt)
+                      huber_k, rw, rv, sh[0], sh[10:19])
 
 
 @_njit
 def _temporal_rho(p, m, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, ab_h, ab_j, w0, huber_k,
-                  tw, tv, lt):
+                  tw, tv, sh):
     """Temporal term of point p in target m at rho: I_j - b_j - s (I_h - b_h)."""
     s = math.exp(min(max(ab_j[0] - ab_h[0], -MAX_LOG_GAIN), MAX_LOG_GAIN))
     return _rho_terms(p, rho, bearing, sv, Ii, wg, hvalid, img, K, R, t, s, ab_j[1] - s * ab_h[1], w0,
-                      huber_k, tw, tv, lt)
+                      huber_k, tw, tv, sh[0], sh[1:10])
 
 
 @_njit
 def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
                st_img, K1, R_rl, t_rl, ab_r, st_w, use_stereo, huber_k, iters, rho_min, rho_max,
-               sv, TW, TV, rw, rv, lt):
+               sv, TW, TV, rw, rv, sh):
     """A few damped Gauss-Newton steps on the inverse depth of point p (poses held)."""
     M = R_ji.shape[0]
     for _ in range(iters):
@@ -131,14 +133,14 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
         gr = 0.0
         if use_stereo:
             a, b, _c, _s, _n = _stereo_terms(p, rho, bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl,
-                                             t_rl, ab_r, st_w, huber_k, rw, rv, lt)
+                                             t_rl, ab_r, st_w, huber_k, rw, rv, sh)
             Hrr += a
             gr += b
         for m in range(M):
             if tmask[p, m]:
                 a, b, _c, _s, _n = _temporal_rho(p, m, rho, bearing, sv, Ii, wg, hvalid, imgs[m], K,
                                                  R_ji[m], t_ji[m], ab_h, ab_t[m], w0, huber_k,
-                                                 TW[m], TV[m], lt)
+                                                 TW[m], TV[m], sh)
                 Hrr += a
                 gr += b
         if Hrr <= 1e-12:
@@ -155,7 +157,7 @@ def refine_rho(p, rho, bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h
 @_njit
 def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t, w0,
                 st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k, outlier_rms, iters,
-                rho_min, rho_max, sv, TW, TV, rw, rv, lt):
+                rho_min, rho_max, sv, TW, TV, rw, rv, sh):
     """Pass 1 of :func:`host_system`, one point at a time (a numba ``prange`` over the
     points cost 4x more per call on the shared 2-core machine of the measurements):
     (refined rho (N,), stereo/depth ok (N,))."""
@@ -167,10 +169,10 @@ def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
             continue
         rp[p] = refine_rho(p, rho[p], bearing, Ii, wg, hvalid, tmask, imgs, K, R_ji, t_ji, ab_h, ab_t,
                            w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask[p], huber_k, iters,
-                           rho_min, rho_max, sv, TW, TV, rw, rv, lt)
+                           rho_min, rho_max, sv, TW, TV, rw, rv, sh)
         if smask[p]:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k, rw, rv, lt)
+                                            t_rl, ab_r, st_w, huber_k, rw, rv, sh)
             if nv < P // 2 or ss > outlier_rms * outlier_rms * nv:
                 ok_p[p] = False
         if rp[p] <= rho_min or rp[p] >= rho_max:
@@ -180,7 +182,7 @@ def _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
 
 @_njit
 def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c, t_b_c,
-               ab_h, ab_t, w0, sv, TW, TV, lt):
+               ab_h, ab_t, w0, sv, TW, TV, sh):
     """Pass 2 of :func:`host_system`: every (point, target) pair's residuals at the refined
     depth, stored for pass 3 so the pattern RMS that decides the outliers and the
     normal equations share one warp per pixel. Returns (rows (N, M, P, 19) =
@@ -188,6 +190,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
     -1 for a pattern that left the image, inf for one not judged)."""
     N, P = Ii.shape
     M = R_ji.shape[0]
+    lt, rm = sh[0], sh[1:10]
     rows = np.empty((N, M, P, 19))
     valid = np.zeros((N, M, P), np.bool_)
     ms = np.full((N, M), np.inf)
@@ -216,7 +219,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
                 f2 = bearing[p, k, 2] + r_p * c2
                 if lt > 0.0:     # (a global shutter calls _warp directly: 30% faster)
                     ok, q0, q1, q2, u, v, jx = _warp_rs(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq,
-                                                        tw, tv, lt, K[1], K[3], True)
+                                                        tw, tv, lt, rm, True)
                 else:
                     ok, q0, q1, q2, u, v = _warp(f0, f1, f2, r_p, R, t, K, imgs[m], smp, dq)
                     jx = 0.0
@@ -267,7 +270,7 @@ def _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji, R_
 @_njit
 def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji, R_jb, R_b_c,
                 t_b_c, ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask, huber_k,
-                outlier_rms, iters, rho_min, rho_max, update, rms, sv, TW, TV, rw, rv, lt):
+                outlier_rms, iters, rho_min, rho_max, update, rms, sv, TW, TV, rw, rv, sh):
     """Reduced normal equations of one host (module docstring).
 
     ``smask`` (N,) bool: the points that carry the static stereo term (their depth came
@@ -277,7 +280,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     and each (point, target) pair's pattern RMS into ``rms`` (N, >= M; ``_pair_rows``'s:
     -1 left the image, inf not judged or the point failed its stereo or depth check).
     Rolling shutter (module docstring): ``sv`` (N, 3), ``TW``, ``TV`` (M, 3), ``rw``, ``rv``
-    (3,), ``lt`` (s per row).
+    (3,), ``sh`` (19,: line time and the two cameras' row models).
     """
     N, P = Ii.shape
     M = R_ji.shape[0]
@@ -292,9 +295,9 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
     # every (point, target)
     rp, ok_p = _refine_all(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
                            ab_h, ab_t, w0, st_img, K1, R_rl, t_rl, ab_r, st_w, smask,
-                           huber_k, outlier_rms, iters, rho_min, rho_max, sv, TW, TV, rw, rv, lt)
+                           huber_k, outlier_rms, iters, rho_min, rho_max, sv, TW, TV, rw, rv, sh)
     rows, valid, ms = _pair_rows(bearing, Ii, wg, hvalid, rp, ok_p, tmask, imgs, K, R_ji, t_ji,
-                                 R_jb, R_b_c, t_b_c, ab_h, ab_t, w0, sv, TW, TV, lt)
+                                 R_jb, R_b_c, t_b_c, ab_h, ab_t, w0, sv, TW, TV, sh)
     if update:
         rms[:, :M] = ms          # inf where pass 1 left the point out
     # outlier thresholds per target: outlier_rms, or twice the median point RMS where
@@ -317,7 +320,7 @@ def host_system(bearing, Ii, wg, hvalid, rho, alive, tmask, imgs, K, R_ji, t_ji,
         cp = 0.0
         if smask[p]:
             a, b, c, ss, nv = _stereo_terms(p, rp[p], bearing, sv, Ii, wg, hvalid, st_img, K1, R_rl,
-                                            t_rl, ab_r, st_w, huber_k, rw, rv, lt)
+                                            t_rl, ab_r, st_w, huber_k, rw, rv, sh)
             Hrr += a
             gr += b
             cp += c

@@ -15,8 +15,8 @@ for clipped pixels:
 the pose columns along ``T Exp(xi)``, xi = [omega, v] (GTSAM). With a rolling shutter
 (``lt`` > 0, ``factors.photometric.Shutter``) the keyframe points arrive moved back to
 its row 0 (``bearing + rho sv``) and the new frame is sampled at each row's time along
-its camera twist (``w``, ``vel``; ``factors.photometric_warp._warp_rs``, rows of the
-full-resolution image ``rf y + rc``), g = dr/dq through that, and dr/drho = g (t + R sv)
+its camera twist (``w``, ``vel``; ``factors.photometric_warp._warp_rs``, sensor rows of
+the full-resolution camera ``rm``, a ``row_model``), g = dr/dq through that, and dr/drho = g (t + R sv)
 - s g_s vel. Rows of pattern pixels
 that are invalid (behind the camera, outside the valid image area, host pixel
 invalid) get the constant ``oob`` residual and a zero Jacobian. The numpy path built
@@ -35,11 +35,11 @@ from factors.photometric_warp import _warp_any, _warp_rs, rho_direction
 
 @_njit
 def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b_j, c2, two_s2, oob,
-               r_w, J, r_raw, valid, sv, w, vel, lt, rf, rc):
+               r_w, J, r_raw, valid, sv, w, vel, lt, rm):
     """Fill the whitened residuals ``r_w`` (N P,), Jacobian ``J`` (N P, 8), the raw
     residuals ``r_raw`` (N, P) and ``valid`` (N, P). ``s`` the relative gain e^(a_j - a_i),
     ``b_i``, ``b_j`` the offsets; ``var`` (N,) inverse-depth variances (zeros: no V term);
-    the rolling shutter ``sv`` (N, 3), ``w``, ``vel`` (3,), ``lt``, ``rf``, ``rc`` (module
+    the rolling shutter ``sv`` (N, 3), ``w``, ``vel`` (3,), ``lt``, ``rm`` (9,) (module
     docstring; ``lt`` 0: none)."""
     N, P = Ii.shape
     smp = np.empty(3)
@@ -60,7 +60,7 @@ def track_rows(bearing, Ii, grad_sq, hvalid, rho, var, R, t, K, stack, s, b_i, b
             if lt > 0.0:
                 ok, q0, q1, q2, _u, _v, jx = _warp_rs(bearing[p, k, 0] + o0, bearing[p, k, 1] + o1,
                                                       bearing[p, k, 2] + o2, rp, R, t, K, stack, smp, dq,
-                                                      w, vel, lt, rf, rc, False)
+                                                      w, vel, lt, rm, False)
             else:
                 ok, q0, q1, q2, _u, _v = _warp_any(bearing[p, k, 0], bearing[p, k, 1], bearing[p, k, 2],
                                                    rp, R, t, K, stack, smp, dq)

@@ -27,6 +27,7 @@ from factors.photometric import (Pinhole, PhotometricParams, Shutter, make_host_
                                  stereo_factor, stereo_residual_fn, temporal_eval,
                                  temporal_factor, temporal_residual_fn)
 from factors.photometric_point import StereoTerm, point_factor, point_kinds, point_residual_fn
+from factors.photometric_warp import row_model
 from jacobian_case import JacobianCase
 
 W, H = 640, 480
@@ -56,12 +57,19 @@ def _point_seen_at(T_w_ci: gtsam.Pose3, T_w_cj: gtsam.Pose3, uv_j: np.ndarray, z
     return K.project(p_ci), 1.0 / p_ci[2]
 
 
-def _shutter(rng: np.random.Generator, rolling: bool) -> Shutter | None:
+LENS = {"radial-tangential": (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),    # EuRoC cam0
+        "equidistant": (0.0034823894, 0.0007150348, -0.0020532361, 0.0002029367)}        # TUM-VI cam0
+"""Lens coefficients of the rolling-shutter cases whose row times are sensor rows."""
+
+
+def _shutter(rng: np.random.Generator, rolling: bool | str) -> Shutter | None:
     """A rolling shutter of 0.1 ms a row (48 ms readout, 3x the rendered test sequence's)
-    with random host and target twists of ~1 rad/s and ~1 m/s, or None."""
+    with random host and target twists of ~1 rad/s and ~1 m/s, or None; ``rolling`` a
+    ``LENS`` name: the row times are the sensor rows through that lens."""
     if not rolling:
         return None
-    return Shutter(1e-4, rng.normal(0, 1.0, 6), rng.normal(0, 1.0, 6))
+    rows = row_model((K.fx, K.fy, K.cx, K.cy), rolling, LENS[rolling]) if isinstance(rolling, str) else None
+    return Shutter(1e-4, rng.normal(0, 1.0, 6), rng.normal(0, 1.0, 6), rows, rows)
 
 
 def _frac_ok(uv: np.ndarray, margin: float = 0.05) -> bool:
@@ -72,9 +80,10 @@ def _frac_ok(uv: np.ndarray, margin: float = 0.05) -> bool:
 def temporal_case(name: str, *, rho_target: float | None = None, baseline: float = 0.15,
                   uv_j: tuple[float, float] | None = None, zero_affine: bool = False,
                   identity_extrinsic: bool = False, bilinear: bool = False,
-                  degenerate: bool = False, rolling: bool = False) -> JacobianCase:
+                  degenerate: bool = False, rolling: bool | str = False) -> JacobianCase:
     """A temporal factor at a random state; options select the degenerate variants;
-    ``rolling``: both images with a rolling shutter (``factors.photometric.Shutter``)."""
+    ``rolling``: both images with a rolling shutter (``factors.photometric.Shutter``; a
+    ``LENS`` name: its rows bent by that lens)."""
 
     def build(rng: np.random.Generator):
         target = analytic_image(rng)
@@ -124,9 +133,9 @@ def temporal_case(name: str, *, rho_target: float | None = None, baseline: float
 
 
 def stereo_case(name: str, *, baseline: float = 0.11, rho_range=(0.1, 1.5), bilinear: bool = False,
-                degenerate: bool = False, rolling: bool = False) -> JacobianCase:
+                degenerate: bool = False, rolling: bool | str = False) -> JacobianCase:
     """A static stereo factor (left host -> right target) at a random state (``rolling``:
-    both cameras with a rolling shutter)."""
+    both cameras with a rolling shutter, a ``LENS`` name: through that lens)."""
 
     def build(rng: np.random.Generator):
         target = analytic_image(rng)
@@ -236,11 +245,14 @@ CASES: list[JacobianCase] = [
     temporal_case("photometric_temporal_rolling_shutter", rolling=True),
     temporal_case("photometric_temporal_rolling_shutter_far_point", rho_target=1e-3, rolling=True,
                   degenerate=True),
+    temporal_case("photometric_temporal_rolling_shutter_radtan_lens", rolling="radial-tangential"),
+    temporal_case("photometric_temporal_rolling_shutter_fisheye_lens", rolling="equidistant"),
     stereo_case("photometric_stereo_random"),
     stereo_case("photometric_stereo_bilinear_exact", bilinear=True),
     stereo_case("photometric_stereo_tiny_baseline", baseline=1e-3, degenerate=True),
     stereo_case("photometric_stereo_far_point", rho_range=(1e-4, 1e-3), degenerate=True),
     stereo_case("photometric_stereo_rolling_shutter", rolling=True),
+    stereo_case("photometric_stereo_rolling_shutter_radtan_lens", rolling="radial-tangential"),
 ]
 
 

@@ -10,10 +10,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from cases_photometric import H, W, K, analytic_image, random_pose
+from cases_photometric import H, LENS, W, K, analytic_image, random_pose
 from factors.image_ops import BilinearImage
 from factors.photometric import (PhotometricParams, Shutter, make_host_patch, sqrt_weights,
                                  stereo_eval, temporal_eval)
+from factors.photometric_warp import row_model
 from factors.photometric_host import (HostParams, HostPoints, HostShutter, StereoHost, host_factor,
                                       host_linearize, square_root)
 
@@ -44,7 +45,7 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None, shutter
     ``HostShutter`` (each pair's ``Shutter`` from its frames' twists)."""
     M, N = (len(args) - 2) // 2, len(rho)
     pair = (lambda j: None) if shutter is None else (
-        lambda j: Shutter(shutter.line_time_s, shutter.twists[0], shutter.twists[j]))
+        lambda j: Shutter(shutter.line_time_s, shutter.twists[0], shutter.twists[j], shutter.rows, shutter.rows))
     n = 8 * (M + 1)
     rows, res = [], []
     for m in range(M):
@@ -61,7 +62,8 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None, shutter
                 rows.append(sw[i, k] * row)
                 res.append(sw[i, k] * ev.r[i, k])
     right = None if shutter is None else Shutter(shutter.line_time_s, shutter.twists[0],
-                                                 T_RL.AdjointMap() @ shutter.twists[0])
+                                                 T_RL.AdjointMap() @ shutter.twists[0], shutter.rows,
+                                                 shutter.right_rows)
     ev = stereo_eval(rho, stereo.ab, patch, imgs[-1], K, T_RL, shutter=right)
     sw = sqrt_weights(ev, patch, pp)
     for i in range(N):
@@ -75,19 +77,33 @@ def _full_problem(imgs, T_b_c, args, patch, rho, stereo, pp, smask=None, shutter
     return np.array(res), np.array(rows), n
 
 
-@pytest.mark.parametrize("mixed,rolling", [(False, False), (True, False), (True, True)])
+def _host_shutter(seed: int, m: int, rolling: bool | str) -> HostShutter | None:
+    """A 0.1-ms-a-row shutter with random twists; ``rolling`` a lens name: both cameras'
+    rows through it (the right camera's coefficients scaled, another lens)."""
+    if not rolling:
+        return None
+    tw = np.random.default_rng(seed).normal(0, 0.5, (m, 6))
+    if rolling is True:
+        return HostShutter(1e-4, tw)
+    kv = (K.fx, K.fy, K.cx, K.cy)
+    return HostShutter(1e-4, tw, row_model(kv, rolling, LENS[rolling]),
+                       row_model(kv, rolling, 0.8 * np.asarray(LENS[rolling])))
+
+
+@pytest.mark.parametrize("mixed,rolling", [(False, False), (True, False), (True, True),
+                                           (True, "radial-tangential")])
 def test_host_factor_is_the_schur_complement_of_the_pointwise_problem(mixed, rolling):
     """Without depth refinement, Huber or outliers, the kernel's reduced H and g equal
     H_xx - H_xr H_rr^-1 H_rx and g_x - H_xr H_rr^-1 g_r of the point-wise problem; with
     ``mixed``, a third of the points have no static stereo term (``HostPoints.stereo``:
     depths from a temporal search); with ``rolling``, every image has a rolling shutter
     (``HostShutter``; the pairwise terms' Jacobians are checked numerically by the shared
-    suite)."""
+    suite), a lens name: its sensor rows through that lens."""
     imgs, T_b_c, args, patch, rho, stereo = _scene(3)
     pp = PhotometricParams(4.0, 50.0, None)
     params = HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0)
     smask = (np.arange(len(rho)) % 3 != 0) if mixed else None
-    shutter = HostShutter(1e-4, np.random.default_rng(9).normal(0, 0.5, (3, 6))) if rolling else None
+    shutter = _host_shutter(9, 3, rolling)
     pts = HostPoints.create(patch, rho, 50.0, 4, smask)
     Hk, gk, E, red, used = host_linearize(args, pts, [im._stack for im in imgs[1:-1]], K, T_b_c,
                                           params, stereo, shutter=shutter)
@@ -112,7 +128,7 @@ def test_host_factor_is_the_schur_complement_of_the_pointwise_problem(mixed, rol
     np.testing.assert_allclose(0.5 * rr @ rr, red, rtol=1e-9)
 
 
-@pytest.mark.parametrize("rolling", [False, True])
+@pytest.mark.parametrize("rolling", [False, True, "equidistant"])
 def test_host_factor_refines_depths_then_reduces_at_them(rolling):
     """With depth refinement on, the factor linearizes at the refined inverse depths it
     writes back: H and g equal the point-wise Schur complement at those depths, the
@@ -121,7 +137,7 @@ def test_host_factor_refines_depths_then_reduces_at_them(rolling):
     imgs, T_b_c, args, patch, rho, stereo = _scene(4, n=15, m=1)
     pp = PhotometricParams(4.0, 50.0, None)
     stacks = [im._stack for im in imgs[1:-1]]
-    shutter = HostShutter(1e-4, np.random.default_rng(4).normal(0, 0.5, (2, 6))) if rolling else None
+    shutter = _host_shutter(4, 2, rolling)
     E0 = host_linearize(args, HostPoints.create(patch, rho, 50.0, 4), stacks, K, T_b_c,
                         HostParams(pp, 1.0, 1e9, 0, 1e-3, 100.0), stereo, shutter=shutter)[2]
     params = HostParams(pp, 1.0, 1e9, 3, 1e-3, 100.0)

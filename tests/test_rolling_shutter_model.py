@@ -71,3 +71,36 @@ def test_shutter_warp_is_the_simulated_rolling_shutter_camera():
             out.append(np.linalg.norm(ev.uv[0, 0] - uv_j))
     assert np.median(err) < 0.01 and np.max(err) < 0.1, (np.median(err), np.max(err))
     assert np.median(err_gs) > 0.1
+
+
+def test_sensor_row_is_the_lens_projection_row():
+    """``factors.photometric_warp.sensor_row`` (the row a rolling shutter times, for an
+    undistorted point) is the row of the camera's own distorted projection
+    (``vio.frontend.camera.Camera``) for EuRoC's radial-tangential and TUM-VI's equidistant
+    lenses, up to the image corners and beyond; its derivatives match central
+    differences; without a lens it is the pinhole row."""
+    from dataclasses import replace
+    from factors.photometric_warp import row_model, sensor_row, sensor_rows
+    from vio.frontend.camera import Camera
+    base = sim_camera("cam0", 1.0, 20.0, LINE_S)
+    lenses = {"radial-tangential": (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+              "equidistant": (0.0034823894, 0.0007150348, -0.0020532361, 0.0002029367),
+              "none": (0.0, 0.0, 0.0, 0.0)}
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-0.9, 0.9, 200), rng.uniform(-0.6, 0.6, 200)
+    x[:2], y[:2] = 0.0, (0.0, 1e-12)                      # the optical axis
+    for model, D in lenses.items():
+        calib = replace(base, distortion_model=model, distortion=D if model != "none" else ())
+        m = row_model(calib.intrinsics, model, D)
+        row, gx, gy = sensor_rows(x, y, m)
+        np.testing.assert_allclose(row, Camera(calib).project_normalized(np.column_stack([x, y]))[:, 1],
+                                   atol=1e-9)
+        e = 1e-6
+        for i in range(0, 200, 7):
+            fdx = (sensor_row(x[i] + e, y[i], m)[0] - sensor_row(x[i] - e, y[i], m)[0]) / (2 * e)
+            fdy = (sensor_row(x[i], y[i] + e, m)[0] - sensor_row(x[i], y[i] - e, m)[0]) / (2 * e)
+            assert abs(fdx - gx[i]) < 1e-4 * base.intrinsics[1] and abs(fdy - gy[i]) < 1e-4 * base.intrinsics[1]
+        if model == "none":
+            np.testing.assert_allclose(row, base.intrinsics[1] * y + base.intrinsics[3], atol=1e-9)
+        else:   # a lens bends the rows: tens of rows off the pinhole row near the corners
+            assert np.abs(row - (base.intrinsics[1] * y + base.intrinsics[3])).max() > 10.0

@@ -20,6 +20,7 @@ import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid
 from factors.photometric import PATTERN, Pinhole
+from factors.photometric_warp import row_model
 from vio.direct.config import DirectConfig
 from vio.direct.epipolar import epipolar_search, undistort_pinhole
 from vio.direct.photocal import PhotometricCalibration
@@ -29,11 +30,21 @@ from vio.io.euroc import read_image
 from vio.io.types import CameraCalib
 
 
+def _sensor_rows(calib: CameraCalib) -> np.ndarray | None:
+    """``calib``'s sensor-row model, None without a lens (no distortion coefficients)."""
+    if calib.distortion_model == "none" or not np.any(np.asarray(calib.distortion, float)):
+        return None
+    return row_model(calib.intrinsics, calib.distortion_model, calib.distortion)
+
+
 @dataclass(eq=False)
 class StereoRig:
     """The fixed stereo geometry: pinhole intrinsics of both cameras, ``T_b_c`` of
     cam0 (body <- cam0) and ``T_c1_c0`` (cam1 <- cam0), the distortion to remove, and
-    each camera's photometric calibration (``vio.direct.photocal``; identity: none)."""
+    each camera's photometric calibration (``vio.direct.photocal``; identity: none).
+    ``rows0``, ``rows1``: each camera's sensor-row model (``factors.photometric_warp.
+    row_model``) where its lens bends the sensor rows in the undistorted image, for a
+    rolling shutter's row times; None without a lens (the pinhole row is the sensor row)."""
 
     cam0: CameraCalib
     cam1: CameraCalib
@@ -43,12 +54,15 @@ class StereoRig:
     K1: Pinhole = field(init=False)
     T_b_c: gtsam.Pose3 = field(init=False)
     T_c1_c0: gtsam.Pose3 = field(init=False)
+    rows0: np.ndarray | None = field(init=False)
+    rows1: np.ndarray | None = field(init=False)
 
     def __post_init__(self) -> None:
         self.K0 = Pinhole(*self.cam0.intrinsics)
         self.K1 = Pinhole(*self.cam1.intrinsics)
         self.T_b_c = self.cam0.T_b_c
         self.T_c1_c0 = self.cam1.T_b_c.between(self.cam0.T_b_c)
+        self.rows0, self.rows1 = _sensor_rows(self.cam0), _sensor_rows(self.cam1)
 
     def undistort(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Both images as undistorted pinhole float64 images (no-op without distortion),

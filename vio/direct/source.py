@@ -228,12 +228,13 @@ class PhotometricSource(TrackFrameStep):
         return self._timed() or self.rig.cam0.line_time_s > 0.0
 
     def _shutter(self, frames: list[int]) -> HostShutter | None:
-        """The rolling shutter of a factor over ``frames`` (host first): cam0's line time and
-        each frame's cam0 twist, Ad(T_c_b) [omega_b, v_b] (None for a global shutter)."""
+        """The rolling shutter of a factor over ``frames`` (host first): cam0's line time,
+        each frame's cam0 twist, Ad(T_c_b) [omega_b, v_b], and the cameras' sensor rows
+        through their lenses (None for a global shutter)."""
         lt = float(self.rig.cam0.line_time_s)
         if lt <= 0.0:
             return None
-        return HostShutter(lt, np.array([self._cam_twist(f) for f in frames]))
+        return HostShutter(lt, np.array([self._cam_twist(f) for f in frames]), self.rig.rows0, self.rig.rows1)
 
     def _cam_twist(self, f: int) -> np.ndarray:
         """Keyframe f's cam0 twist [omega_c, v_c] (6,): Ad(T_c_b) of its body twist (zero

@@ -116,7 +116,8 @@ class TrackFrameStep:
         if lt <= 0.0:
             return None
         tw_k = self._twist(k, v.atPose3(X(k)), pred.velocity(), v.atConstantBias(B(k)))
-        return Shutter(lt, self._cam_twist(prev.k), self.rig.T_b_c.inverse().AdjointMap() @ tw_k)
+        return Shutter(lt, self._cam_twist(prev.k), self.rig.T_b_c.inverse().AdjointMap() @ tw_k,
+                       self.rig.rows0, self.rig.rows0)
 
     def _reference(self, prev: KeyframeData, ab: np.ndarray, T_w_cp: gtsam.Pose3):
         """TrackFrame's reference of ``prev`` (camera ``T_w_cp``, affine ``ab``): its own
@@ -124,7 +125,9 @@ class TrackFrameStep:
         if self.cfg.track.window_cell_px <= 0:
             return prev.reference(ab, self.cfg)
         lt = float(self.rig.cam0.line_time_s)
-        shutter_of = (lambda h: Shutter(lt, self._cam_twist(h), self._cam_twist(prev.k))) if lt > 0.0 else None
+        rows = self.rig.rows0
+        shutter_of = (lambda h: Shutter(lt, self._cam_twist(h), self._cam_twist(prev.k), rows, rows)) \
+            if lt > 0.0 else None
         return keyframe_reference(prev, ab, T_w_cp, self.live_points(), self.est.values, self.rig.T_b_c,
                                   self.cfg.track, shutter_of)
 

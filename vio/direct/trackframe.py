@@ -30,6 +30,7 @@ import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
 from factors.photometric import HostPatch, Pinhole, Shutter, make_host_patch, rolled_bearings
+from factors.photometric_warp import pixel_row_s, row_model
 from factors.photometric_kernel import MAX_LOG_GAIN
 from factors.trackframe_kernel import track_rows
 from vio.conventions import pose_from_matrix
@@ -152,15 +153,17 @@ def make_reference(image: np.ndarray | Sequence[BilinearImage], uv: np.ndarray, 
 def _shutter_args(ref: TrackingReference, lev: int, shutter: Shutter | None) -> tuple:
     """The kernel's rolling-shutter arguments at level ``lev``: (bearings moved to the
     keyframe's row 0, their rho part sv (N, 3), the new frame's twist (omega, v), line
-    time, level 0's fy and cy: rows are full-resolution rows); no shutter: the plain
-    bearings, zeros and line time 0."""
+    time, the new frame's row model at level 0: rows are full-resolution sensor rows); no
+    shutter: the plain bearings, zeros and line time 0."""
     b = ref.patches[lev].bearing
     if shutter is None or shutter.line_time_s <= 0.0:
-        return b, np.zeros((len(ref.idepth), 3)), np.zeros(3), np.zeros(3), 0.0, 0.0, 0.0
+        return b, np.zeros((len(ref.idepth), 3)), np.zeros(3), np.zeros(3), 0.0, np.zeros(9)
     lt = float(shutter.line_time_s)
-    bw, sv = rolled_bearings(b, lt * ref.patches[0].uv[:, 1], shutter.host)
+    bw, sv = rolled_bearings(b, pixel_row_s(lt, ref.patches[0].uv, shutter.host_rows), shutter.host)
     tw = np.asarray(shutter.target, float)
-    return bw, sv, tw[:3].copy(), tw[3:].copy(), lt, ref.K[0].fy, ref.K[0].cy
+    K0 = ref.K[0]
+    rm = row_model((K0.fx, K0.fy, K0.cx, K0.cy)) if shutter.target_rows is None else shutter.target_rows
+    return bw, sv, tw[:3].copy(), tw[3:].copy(), lt, rm
 
 
 def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg: TrackConfig,
