@@ -1,4 +1,5 @@
-"""Keyframe rates for the td term: the mean gyro over [t_k, t_k + td], refined as IMU arrives."""
+"""Keyframe rates for the td term: the mean gyro over [t_k, t_k + td] (and a rolling
+shutter's readout), refined as IMU arrives."""
 
 from __future__ import annotations
 
@@ -82,11 +83,26 @@ def test_keyframe_rate_offset_by_td_obs():
     np.testing.assert_allclose(r.rate(2, 0.003), full.gyro[60], atol=1e-12)
 
 
+@pytest.mark.parametrize("rem_ms", [6.0, -4.0, -20.0, 0.0])
+def test_keyframe_rate_spans_a_rolling_shutters_readout(rem_ms):
+    """With a rolling shutter (``readout_s``) the rows are exposed from t_k + rem to t_k +
+    rem + readout: the rate is the mean over the interval from t_k to all of them."""
+    full = _imu(0, 400)
+    r = KeyframeRates(margin_s=0.15)
+    r.add_imu(full)
+    r.add_keyframe(1, 300 * MS, full.gyro[60], td_obs_s=0.002)
+    td = rem_ms * 1e-3 + 0.002
+    lo, hi = 300 * MS + min(0, int(rem_ms * MS)), 300 * MS + max(0, int((rem_ms + 14.4) * MS))
+    np.testing.assert_allclose(r.rate(1, td, 0.0144), mean_gyro(full, lo, hi), atol=1e-12)
+    np.testing.assert_allclose(r.rate(1, td, 0.0), mean_gyro(full, *sorted((300 * MS, 300 * MS + int(rem_ms * MS)))),
+                               atol=1e-12)
+
+
 def test_body_motion_is_the_rate_over_the_offset_and_the_body_velocity():
     """``vio.backend.motion.body_motion`` (the KLT factors' predicted velocities and the
     photometric factors' exposure twists): the bias-corrected mean gyro over [t_k, t_k +
-    td - td_obs] at the TD variable's value, the velocity in the body frame, zeros at a
-    keyframe flagged still."""
+    td - td_obs] at the TD variable's value (with a rolling shutter to its last row's
+    time), the velocity in the body frame, zeros at a keyframe flagged still."""
     import gtsam
     from types import SimpleNamespace
     from vio.backend.motion import body_motion
@@ -94,7 +110,7 @@ def test_body_motion_is_the_rate_over_the_offset_and_the_body_velocity():
     imu = _imu(0, 200)
     rates.add_keyframe(3, 50 * MS, imu.gyro[10], td_obs_s=0.002)
     rates.add_imu(imu)
-    est = SimpleNamespace(rates=rates, still_kf={4})
+    est = SimpleNamespace(rates=rates, still_kf={4}, cam=SimpleNamespace(line_time_s=0.0, height=480))
     T = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.3, -0.2, 1.1), np.array([1.0, 2.0, 3.0]))
     v_w, bias = np.array([0.5, -1.0, 0.2]), gtsam.imuBias.ConstantBias(np.zeros(3), np.array([0.01, -0.02, 0.03]))
     w, v = body_motion(est, 3, T, v_w, bias, 0.009)
@@ -102,3 +118,6 @@ def test_body_motion_is_the_rate_over_the_offset_and_the_body_velocity():
     np.testing.assert_allclose(v, T.rotation().matrix().T @ v_w, atol=1e-12)
     w, v = body_motion(est, 4, T, v_w, bias, 0.009)
     assert not w.any() and not v.any()
+    est.cam = SimpleNamespace(line_time_s=3e-5, height=481)          # a 14.4-ms readout
+    w, _ = body_motion(est, 3, T, v_w, bias, 0.009)
+    np.testing.assert_allclose(w, mean_gyro(imu, 50 * MS, int(71.4 * MS)) - [0.01, -0.02, 0.03], atol=1e-12)

@@ -19,13 +19,15 @@ if TYPE_CHECKING:
 def body_motion(est: "Estimator", f: int, T_w_b: gtsam.Pose3, v_w: np.ndarray,
                 bias: gtsam.imuBias.ConstantBias, td: float) -> tuple[np.ndarray, np.ndarray]:
     """Keyframe f's angular velocity (rad/s: the bias-corrected mean gyro over its exposure
-    offset, ``vio.imu.KeyframeRates``; ``td`` the TD variable's value) and linear velocity
+    offset and a rolling shutter's readout, ``vio.imu.KeyframeRates``; ``td`` the TD
+    variable's value) and linear velocity
     (m/s, ``v_w`` rotated into the body), both in the body frame; zero at keyframes flagged
     still (their images carry no timing information; on the ground with motors running the
     gyro's vibration read as motion let td wander 0 -> 7.8 ms on MH_04 before take-off)."""
     if f in est.still_kf:
         return np.zeros(3), np.zeros(3)
-    w_b = (est.rates.rate(f, td) if f in est.rates else np.zeros(3)) - bias.gyroscope()
+    readout = est.cam.line_time_s * (est.cam.height - 1)
+    w_b = (est.rates.rate(f, td, readout) if f in est.rates else np.zeros(3)) - bias.gyroscope()
     return w_b, T_w_b.rotation().unrotate(v_w)
 
 
