@@ -194,9 +194,10 @@ def velocities_given_gravity(A: np.ndarray, b: np.ndarray, g0: np.ndarray) -> np
 
 
 def _visual_poses(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, cfg: BackendConfig
-                  ) -> tuple[list[gtsam.Pose3 | None], int, int]:
+                  ) -> tuple[list[gtsam.Pose3 | None], int, int, dict]:
     """``T_b0_bk`` per keyframe of the window (None where PnP failed), the number of
-    first-frame stereo points and the smallest inlier count. Each frame is posed against
+    first-frame stereo points, the smallest inlier count and the map (landmark id -> point
+    in the first frame's cam0, m). Each frame is posed against
     the map of every earlier posed frame's stereo points (in c0), so the window may last
     longer than the first frame's points stay in view (close range: 0.45 s on real
     MH_01 from frame 200, where posing against the first frame alone never started)."""
@@ -220,16 +221,62 @@ def _visual_poses(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, cfg: BackendConfi
     if all(c is not None for c in cams) and len(pts) >= sc.min_points:
         cams = refine_poses(points, win.features, cams, T_c0_c1, vc.pixel_sigma / fx, sc.pnp_px / fx)
     poses = [None if c is None else T_b_c.compose(c).compose(T_b_c.inverse()) for c in cams]
-    return poses, len(pts), worst
+    return poses, len(pts), worst, points
+
+
+def rolled_back(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, poses: list[gtsam.Pose3], v_b0: np.ndarray,
+                bg: np.ndarray, points: dict):
+    """``win`` with every observation moved back to its frame's row-0 time, the time of the
+    frame's state (a rolling shutter of ``cam.line_time_s``): uv - s * (image velocity), s
+    = row * line_time, the velocity of the point (``points``, in the first frame's cam0;
+    at infinity where not mapped) seen by the camera's twist: the gyro's mean over the
+    readout less ``bg`` (``vio.imu.KeyframeRates``) and the body velocity ``v_b0`` (K, 3,
+    in the first body frame) of the frame at ``poses`` (``T_b0_bk``); cam1 observations
+    at their own rows with cam1's twist."""
+    from vio.backend.dynamic_init import InitWindow
+    from vio.imu import concat, mean_gyro
+    lt = cam.line_time_s
+    imu = win.imu_all if win.imu_all is not None else concat(list(win.imu))
+    T_b_c = cam.T_b_c
+    R_c_b, p_b_c = T_b_c.rotation().matrix().T, T_b_c.translation()
+    R_10, t_01 = T_c0_c1.rotation().matrix().T, T_c0_c1.translation()
+    readout = int(round(lt * (cam.height - 1) * 1e9))
+    frames = []
+    for k, fr in enumerate(win.features):
+        t0 = int(min(max(fr.t_ns, imu.t_ns[0]), imu.t_ns[-1]))
+        w_b = mean_gyro(imu, t0, int(min(t0 + readout, imu.t_ns[-1]))) - bg
+        v_b = poses[k].rotation().unrotate(v_b0[k])
+        w0, v0 = R_c_b @ w_b, R_c_b @ (v_b + np.cross(w_b, p_b_c))
+        T_ck_c0 = poses[k].compose(T_b_c).inverse().compose(T_b_c)       # first cam0 -> cam0 of k
+        z0 = np.array([T_ck_c0.transformFrom(points[int(i)])[2] if int(i) in points else 1e6 for i in fr.ids])
+        z0 = np.where(z0 > 0.05, z0, 1e6)
+        uv = _moved(fr.uv, z0, w0, v0, fr.row * lt)
+        ruv = fr.right_uv
+        if ruv is not None:
+            rows = fr.row if fr.right_row is None else np.where(np.isfinite(fr.right_row), fr.right_row, fr.row)
+            z1 = np.maximum(z0 - t_01[2], 0.05)        # ~ the depth in cam1 (a sideways baseline)
+            ruv = _moved(ruv, z1, R_10 @ w0, R_10 @ (v0 + np.cross(w0, t_01)), rows * lt)
+        frames.append(FeatureFrame(fr.t_ns, fr.ids, uv, fr.velocity, fr.row, ruv, fr.right_velocity, fr.right_row))
+    return InitWindow(win.t_ns, tuple(frames), win.imu, win.imu_all)
+
+
+def _moved(uv: np.ndarray, depth: np.ndarray, w: np.ndarray, v: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Normalized observations ``uv`` (n, 2) moved back by ``s`` (n,, s; NaN: not moved)."""
+    from vio.backend.graph import image_velocity
+    n = len(uv)
+    vel = image_velocity(uv, depth, np.tile(w, (n, 1)), np.tile(v, (n, 1))) if n else np.zeros((0, 2))
+    return uv - np.where(np.isfinite(s), s, 0.0)[:, None] * vel
 
 
 def stereo_align(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, imu_calib: ImuCalib,
-                 cfg: BackendConfig) -> StereoAlignResult:
+                 cfg: BackendConfig, rolled: bool = False) -> StereoAlignResult:
     """The first keyframe's state of ``win`` (``dynamic_init.InitWindow``) from stereo
-    structure, PnP poses and a linear IMU alignment (see module docstring)."""
+    structure, PnP poses and a linear IMU alignment (see module docstring). With a rolling
+    shutter an accepted alignment is solved again on the observations moved back to their
+    frames' row 0 by its own motion (``rolled_back``; ``rolled``: this is that second pass)."""
     from vio.backend.vi_align import preintegrate_window
     sc = cfg.init.stereo
-    poses, n_pts, worst = _visual_poses(win, cam, T_c0_c1, cfg)
+    poses, n_pts, worst, points = _visual_poses(win, cam, T_c0_c1, cfg)
     n_posed = sum(p is not None for p in poses)
     if n_pts < sc.min_points:
         return StereoAlignResult(False, None, f"only {n_pts} stereo points in the first frame", n_pts)
@@ -263,6 +310,9 @@ def stereo_align(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, imu_calib: ImuCali
                                  **diag)
     g0 = g_norm * u
     v = velocities_given_gravity(A, b, g0)
+    if cam.line_time_s > 0.0 and not rolled:
+        return stereo_align(rolled_back(win, cam, T_c0_c1, poses, v, bg, points), cam, T_c0_c1, imu_calib,
+                            cfg, rolled=True)
     R_w_b0 = gravity_aligned_rotation(-g0)
     rp_sigma = max(sc.min_rp_sigma, 2.0 * np.radians(gsig))
     state = InitialState(win.t_ns[0], gtsam.Pose3(R_w_b0, np.zeros(3)), R_w_b0.rotate(v[0]),
