@@ -3,7 +3,7 @@
     python benchmarks/bench_flights.py [--flights MH_05_difficult@19.05+29.3,V2_01_easy@5+40]
                                        [--modes mono,stereo] [--config Y] [--workers 2]
                                        [--seed 0] [--td-ms 0] [--distort] [--blur-ms 8]
-                                       [--exposure none|smooth|step]
+                                       [--exposure none|smooth|step] [--line-time 3e-5]
 
 Each flight ``SEQ@START+SECONDS`` of ``../shared/data/euroc_imu_gt/SEQ`` is rendered once
 (cached under ``$VIO_BENCH_CACHE`` or ``~/.cache/vio-bench``: the room sized to the flight,
@@ -15,7 +15,8 @@ MH_05 flight (the frames ORB-SLAM3's 0.087 m covers: cam0 from 19.05 s after the
 ground-truth row) and 40-s flights of the seven other sequences, none of which any
 setting was tuned on. ``--distort``, ``--blur-ms`` and ``--exposure`` add what a real
 camera adds (``vio.sim.optics``: the sequence's own radial-tangential lenses, motion blur
-over the exposure; affine brightness changes). Printed per flight and mode: ATE (m, SE3 and Sim3 aligned), path,
+over the exposure; affine brightness changes), ``--line-time`` a rolling shutter (each
+sensor row at its own time, through the lens with ``--distort``). Printed per flight and mode: ATE (m, SE3 and Sim3 aligned), path,
 ATE as % of the path, the Sim3 scale error (%), the initialization (decision / first
 pose, s), divergence restarts, IMU intervals vision contradicted (bridged), frames estimated and time per frame p95 / max (ms).
 Asserts nothing.
@@ -61,11 +62,11 @@ def parse_flight(text: str) -> tuple[str, float, float]:
 
 
 def rendered(seq: str, start: float, seconds: float, seed: int, td_ms: float,
-             optics: FlightOptics = FlightOptics(), exposure: str = "none") -> Path:
-    """The cached rendering of one flight (cam0 and cam1)."""
+             optics: FlightOptics = FlightOptics(), exposure: str = "none", line_time_s: float = 0.0) -> Path:
+    """The cached rendering of one flight (cam0 and cam1; ``line_time_s``: a rolling shutter)."""
     from vio.sim.flight import render_flight
     tcfg = TrackGenConfig(start_s=start, duration_s=seconds, td_s=td_ms * 1e-3, seed=seed)
-    scfg = SimConfig(stereo=True, seed=seed, exposure_changes=exposure)
+    scfg = SimConfig(stereo=True, seed=seed, exposure_changes=exposure, line_time_s=line_time_s)
     parts = [str(GT_DIR / seq), to_dict(tcfg), to_dict(scfg), "vio.sim.flight"]
     if optics != FlightOptics():
         parts.append(to_dict(optics))
@@ -78,10 +79,10 @@ def rendered(seq: str, start: float, seconds: float, seed: int, td_ms: float,
 def run_flight(job: tuple) -> list[tuple[str, float, str]]:
     """Render (or reuse) one flight and run each mode on it: (mode, ATE % of the path, the
     printed row) per mode."""
-    text, modes, config, seed, td_ms, optics, exposure = job
+    text, modes, config, seed, td_ms, optics, exposure, line_time = job
     logging.disable(logging.WARNING)
     seq, start, seconds = parse_flight(text)
-    folder = rendered(seq, start, seconds, seed, td_ms, optics, exposure)
+    folder = rendered(seq, start, seconds, seed, td_ms, optics, exposure, line_time)
     rows = []
     for mode in modes:
         r = run(folder, mode, config)
@@ -101,6 +102,7 @@ def add_render_options(ap: argparse.ArgumentParser, what: str = "") -> None:
     ap.add_argument("--blur-ms", type=float, default=0.0, help=f"{what}motion blur: exposure duration (ms)")
     ap.add_argument("--exposure", default="none", choices=("none", "smooth", "step"),
                     help=f"{what}brightness changes (vio.sim.render.exposure_sequence)")
+    ap.add_argument("--line-time", type=float, default=0.0, help=f"{what}rolling shutter: seconds per row")
 
 
 def main() -> None:
@@ -114,7 +116,8 @@ def main() -> None:
     optics = FlightOptics(distortion=a.distort, blur_s=a.blur_ms * 1e-3)
     if not GT_DIR.is_dir():
         raise SystemExit(f"{GT_DIR}: not found (../shared/data/euroc_imu_gt)")
-    jobs = [(f, a.modes.split(","), a.config, a.seed, a.td_ms, optics, a.exposure) for f in a.flights.split(",")]
+    jobs = [(f, a.modes.split(","), a.config, a.seed, a.td_ms, optics, a.exposure, a.line_time)
+            for f in a.flights.split(",")]
     print(f"{'flight':30s} {'mode':7s} {'ATE m':>7s} {'Sim3 m':>7s} {'path':>6s} {'ATE %':>6s} "
           f"{'scale%':>7s} {'init s':>11s} {'rst':>3s} {'brg':>3s} {'poses/frames':>11s} {'p95':>6s} "
           f"{'max':>6s}", flush=True)

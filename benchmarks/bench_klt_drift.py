@@ -196,7 +196,7 @@ def dataset(a: argparse.Namespace) -> Path:
         raise SystemExit(f"{GT_DIR}: not found (../shared/data/euroc_imu_gt)")
     seq, start, seconds = parse_flight(a.flight)
     optics = FlightOptics(distortion=a.distort, blur_s=a.blur_ms * 1e-3)
-    return rendered(seq, start, seconds, a.seed, a.td_ms, optics, a.exposure)
+    return rendered(seq, start, seconds, a.seed, a.td_ms, optics, a.exposure, a.line_time)
 
 
 def main() -> None:

@@ -41,11 +41,13 @@ import gtsam
 import numpy as np
 
 from vio.backend.config import BackendConfig, StereoInitConfig
+from vio.backend.dynamic_init import InitWindow
+from vio.backend.graph import image_velocity
 from vio.backend.gyro_init import gyro_bias
 from vio.backend.init import InitialState, gravity_aligned_rotation
 from vio.backend.landmarks import stereo_depth
 from vio.errors import one_line
-from vio.imu import combined_params
+from vio.imu import combined_params, concat, mean_gyro
 from vio.io.types import CameraCalib, FeatureFrame, ImuCalib
 
 log = logging.getLogger(__name__)
@@ -233,8 +235,6 @@ def rolled_back(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, poses: list[gtsam.P
     readout less ``bg`` (``vio.imu.KeyframeRates``) and the body velocity ``v_b0`` (K, 3,
     in the first body frame) of the frame at ``poses`` (``T_b0_bk``); cam1 observations
     at their own rows with cam1's twist."""
-    from vio.backend.dynamic_init import InitWindow
-    from vio.imu import concat, mean_gyro
     lt = cam.line_time_s
     imu = win.imu_all if win.imu_all is not None else concat(list(win.imu))
     T_b_c = cam.T_b_c
@@ -262,7 +262,6 @@ def rolled_back(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, poses: list[gtsam.P
 
 def _moved(uv: np.ndarray, depth: np.ndarray, w: np.ndarray, v: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Normalized observations ``uv`` (n, 2) moved back by ``s`` (n,, s; NaN: not moved)."""
-    from vio.backend.graph import image_velocity
     n = len(uv)
     vel = image_velocity(uv, depth, np.tile(w, (n, 1)), np.tile(v, (n, 1))) if n else np.zeros((0, 2))
     return uv - np.where(np.isfinite(s), s, 0.0)[:, None] * vel
