@@ -165,3 +165,21 @@ def test_groundtruth_sources(tmp_path):
     assert len(gt) == 2 and gt.p_w[1, 2] == 4.0
     with pytest.raises(DataError, match="not found"):
         load_groundtruth(tmp_path / "nope.txt")
+
+
+def test_summary_names_a_rolling_shutter_and_its_lens():
+    """The run summary's rolling-shutter line: the line time and readout, and whether a
+    row's time is its sensor row through a lens (the camera has distortion coefficients)."""
+    import dataclasses
+    data = load_euroc(shared("euroc_V1_01_30s_features"))
+    res = run_dataset(data, max_frames=40)
+
+    def line(**calib):
+        cam0 = dataclasses.replace(data.cam0, calib=dataclasses.replace(data.cam0.calib, **calib))
+        return [ln for ln in summary(res, dataclasses.replace(data, cam0=cam0)) if ln.startswith("rolling")]
+
+    assert line(line_time_s=0.0) == []
+    lens = line(line_time_s=3e-5, distortion_model="radial-tangential", distortion=(-0.28, 0.07, 0.0, 0.0))
+    bare = line(line_time_s=3e-5, distortion_model="none", distortion=())
+    assert lens[0].endswith("each row at its own time (its sensor row through the lens)"), lens
+    assert bare[0].endswith("each row at its own time") and "30.0 us a row" in bare[0], bare

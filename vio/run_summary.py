@@ -44,10 +44,12 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
                   f"gyro bias       {np.round(last.bias.gyroscope(), 4)} rad/s",
                   f"accel bias      {np.round(last.bias.accelerometer(), 4)} m/s^2",
                   f"td              {last.td_s * 1e3:.2f} ms"]
-        lt, rows = data.cam0.calib.line_time_s, data.cam0.calib.resolution[1]
+        cal = data.cam0.calib
+        lt, rows = cal.line_time_s, cal.resolution[1]
         if lt > 0.0:
+            lens = cal.distortion_model != "none" and any(float(d) != 0.0 for d in cal.distortion)
             lines.append(f"rolling shutter {lt * 1e6:.1f} us a row ({lt * (rows - 1) * 1e3:.1f} ms readout), "
-                         "each row at its own time")
+                         "each row at its own time" + (" (its sensor row through the lens)" if lens else ""))
         t = last.T_b_c.translation()
         d = data.cam0.calib.T_b_c.between(last.T_b_c)
         moved = np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))), np.linalg.norm(d.translation()) * 1e3
