@@ -234,7 +234,7 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     rolling = shutter is not None and shutter.line_time_s != 0.0
     if rolling:
         w, v = np.asarray(shutter.target[:3], float), np.asarray(shutter.target[3:], float)
-        s, ds_dx, ds_dy = _target_row_s(shutter, K, q, zs)
+        s, ds_dx, ds_dy = target_row_s(shutter, K, q, zs)
         a = _cross(np.broadcast_to(w, q.shape), q, np.empty(q.shape)) + rr * v
         qs = q - s * a
         front &= qs[..., 2] > MIN_Z
@@ -265,7 +265,7 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     return q, np.stack([u, v_px], -1), I, drdq, valid, drdrho, f
 
 
-def _target_row_s(shutter: Shutter, K: Pinhole, q: np.ndarray, z: np.ndarray):
+def target_row_s(shutter: Shutter, K: Pinhole, q: np.ndarray, z: np.ndarray):
     """Row time s (..., 1) of the target points q (..., 3) (depth ``z``) and its
     derivatives in q0 / z and q1 / z (...,): the sensor row of ``shutter.target_rows``, or
     the pinhole row of ``K``."""

@@ -83,9 +83,8 @@ def test_sensor_row_is_the_lens_projection_row():
     from factors.photometric_warp import row_model, sensor_row, sensor_rows
     from vio.frontend.camera import Camera
     base = sim_camera("cam0", 1.0, 20.0, LINE_S)
-    lenses = {"radial-tangential": (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
-              "equidistant": (0.0034823894, 0.0007150348, -0.0020532361, 0.0002029367),
-              "none": (0.0, 0.0, 0.0, 0.0)}
+    from cases_photometric import LENS
+    lenses = {**LENS, "none": (0.0, 0.0, 0.0, 0.0)}
     rng = np.random.default_rng(3)
     x, y = rng.uniform(-0.9, 0.9, 200), rng.uniform(-0.6, 0.6, 200)
     x[:2], y[:2] = 0.0, (0.0, 1e-12)                      # the optical axis

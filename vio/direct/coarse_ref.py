@@ -21,7 +21,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors.photometric import Pinhole, Shutter, rolled_bearings
+from factors.photometric import Pinhole, Shutter, rolled_bearings, target_row_s
 from factors.photometric_warp import pixel_row_s
 from vio.backend.graph import X
 from vio.direct.trackframe import TrackingReference, make_reference
@@ -50,11 +50,7 @@ def host_in_camera(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.n
     q = f @ R.T + rho_h[:, None] * t   # rho_h p_c
     if rolling:
         z = np.where(q[:, 2] > 1e-9, q[:, 2], 1.0)
-        if shutter.target_rows is None:
-            s = shutter.line_time_s * (K.fy * q[:, 1] / z + K.cy)
-        else:       # the sensor row through the lens
-            uv = np.column_stack([K.fx * q[:, 0] / z + K.cx, K.fy * q[:, 1] / z + K.cy])
-            s = pixel_row_s(shutter.line_time_s, uv, shutter.target_rows)
+        s = target_row_s(shutter, K, q, z)[0][:, 0]
         w, v = np.asarray(shutter.target[:3], float), np.asarray(shutter.target[3:], float)
         q = q - s[:, None] * (np.cross(w, q) + rho_h[:, None] * v)
     front = q[:, 2] > 1e-3 * np.maximum(rho_h, 1e-6)
