@@ -110,7 +110,7 @@ def test_body_motion_is_the_rate_over_the_offset_and_the_body_velocity():
     imu = _imu(0, 200)
     rates.add_keyframe(3, 50 * MS, imu.gyro[10], td_obs_s=0.002)
     rates.add_imu(imu)
-    est = SimpleNamespace(rates=rates, still_kf={4}, cam=SimpleNamespace(line_time_s=0.0, height=480))
+    est = SimpleNamespace(rates=rates, still_kf={4}, cam=SimpleNamespace(readout_s=0.0))
     T = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.3, -0.2, 1.1), np.array([1.0, 2.0, 3.0]))
     v_w, bias = np.array([0.5, -1.0, 0.2]), gtsam.imuBias.ConstantBias(np.zeros(3), np.array([0.01, -0.02, 0.03]))
     w, v = body_motion(est, 3, T, v_w, bias, 0.009)
@@ -118,6 +118,6 @@ def test_body_motion_is_the_rate_over_the_offset_and_the_body_velocity():
     np.testing.assert_allclose(v, T.rotation().matrix().T @ v_w, atol=1e-12)
     w, v = body_motion(est, 4, T, v_w, bias, 0.009)
     assert not w.any() and not v.any()
-    est.cam = SimpleNamespace(line_time_s=3e-5, height=481)          # a 14.4-ms readout
+    est.cam = SimpleNamespace(readout_s=3e-5 * 480)                    # a 14.4-ms readout
     w, _ = body_motion(est, 3, T, v_w, bias, 0.009)
     np.testing.assert_allclose(w, mean_gyro(imu, 50 * MS, int(71.4 * MS)) - [0.01, -0.02, 0.03], atol=1e-12)

@@ -45,11 +45,10 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
                   f"accel bias      {np.round(last.bias.accelerometer(), 4)} m/s^2",
                   f"td              {last.td_s * 1e3:.2f} ms"]
         cal = data.cam0.calib
-        lt, rows = cal.line_time_s, cal.resolution[1]
-        if lt > 0.0:
-            lens = cal.distortion_model != "none" and any(float(d) != 0.0 for d in cal.distortion)
-            lines.append(f"rolling shutter {lt * 1e6:.1f} us a row ({lt * (rows - 1) * 1e3:.1f} ms readout), "
-                         "each row at its own time" + (" (its sensor row through the lens)" if lens else ""))
+        if cal.line_time_s > 0.0:
+            lines.append(f"rolling shutter {cal.line_time_s * 1e6:.1f} us a row ({cal.readout_s * 1e3:.1f} ms "
+                         "readout), each row at its own time"
+                         + (" (its sensor row through the lens)" if cal.has_lens else ""))
         t = last.T_b_c.translation()
         d = data.cam0.calib.T_b_c.between(last.T_b_c)
         moved = np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(d.rotation()))), np.linalg.norm(d.translation()) * 1e3

@@ -26,8 +26,7 @@ def body_motion(est: "Estimator", f: int, T_w_b: gtsam.Pose3, v_w: np.ndarray,
     gyro's vibration read as motion let td wander 0 -> 7.8 ms on MH_04 before take-off)."""
     if f in est.still_kf:
         return np.zeros(3), np.zeros(3)
-    readout = est.cam.line_time_s * (est.cam.height - 1)
-    w_b = (est.rates.rate(f, td, readout) if f in est.rates else np.zeros(3)) - bias.gyroscope()
+    w_b = (est.rates.rate(f, td, est.cam.readout_s) if f in est.rates else np.zeros(3)) - bias.gyroscope()
     return w_b, T_w_b.rotation().unrotate(v_w)
 
 

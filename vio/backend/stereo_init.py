@@ -240,7 +240,7 @@ def rolled_back(win, cam: CameraCalib, T_c0_c1: gtsam.Pose3, poses: list[gtsam.P
     T_b_c = cam.T_b_c
     R_c_b, p_b_c = T_b_c.rotation().matrix().T, T_b_c.translation()
     R_10, t_01 = T_c0_c1.rotation().matrix().T, T_c0_c1.translation()
-    readout = int(round(lt * (cam.height - 1) * 1e9))
+    readout = int(round(cam.readout_s * 1e9))
     frames = []
     for k, fr in enumerate(win.features):
         t0 = int(min(max(fr.t_ns, imu.t_ns[0]), imu.t_ns[-1]))

@@ -32,7 +32,7 @@ from vio.io.types import CameraCalib
 
 def _sensor_rows(calib: CameraCalib) -> np.ndarray | None:
     """``calib``'s sensor-row model, None without a lens (no distortion coefficients)."""
-    if calib.distortion_model == "none" or not np.any(np.asarray(calib.distortion, float)):
+    if not calib.has_lens:
         return None
     return row_model(calib.intrinsics, calib.distortion_model, calib.distortion)
 

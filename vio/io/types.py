@@ -51,6 +51,16 @@ class CameraCalib:
     def height(self) -> int:
         return self.resolution[1]
 
+    @property
+    def readout_s(self) -> float:
+        """Seconds from the first row's exposure to the last row's (0 for a global shutter)."""
+        return self.line_time_s * (self.height - 1)
+
+    @property
+    def has_lens(self) -> bool:
+        """Whether the lens bends the image: a distortion model with a nonzero coefficient."""
+        return self.distortion_model != "none" and any(float(d) != 0.0 for d in self.distortion)
+
     def check_resolution(self, img: np.ndarray, where: object) -> np.ndarray:
         """``img`` if it is ``height x width``, else ``DataError`` naming ``where`` (its file,
         or which frame): images that do not match their calibration are bad input, not a

@@ -79,7 +79,7 @@ def frame_stamps(cfg: SimConfig, t_imu_ns: np.ndarray) -> np.ndarray:
     period = round(1e9 / cfg.cam_rate_hz)
     lo, hi = int(t_imu_ns[0]), int(t_imu_ns[-1])
     stamps = cfg.t0_ns + period * np.arange((hi - cfg.t0_ns) // period + 1, dtype=np.int64)
-    readout = round((cfg.resolution[1] - 1) * cfg.line_time_s * 1e9)
+    readout = round(cfg.readout_s * 1e9)
     start = stamps + round(cfg.td_s * 1e9)
     keep = (stamps >= lo) & (stamps <= hi) & (start >= lo) & (start + readout <= hi)
     return stamps[keep]

@@ -115,3 +115,8 @@ class SimConfig:
     def resolution(self) -> tuple[int, int]:
         """(width, height) in pixels."""
         return (max(8, round(752 * self.image_scale)), max(8, round(480 * self.image_scale)))
+
+    @property
+    def readout_s(self) -> float:
+        """Seconds from the first row's exposure to the last row's (0 for a global shutter)."""
+        return (self.resolution[1] - 1) * self.line_time_s

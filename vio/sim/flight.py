@@ -144,11 +144,12 @@ def _render_frames(mav0: Path, cams: list[CameraCalib], scene, atlas, cfg: SimCo
         from tqdm import tqdm
         frames = tqdm(frames, desc="vio sim", unit="frame")
     for j in frames:
+        body = [_body_rows(fused, offset, cams[0], t + td) for t in t_ns[j] + dt]
         for k, (cam, view, wr) in enumerate(zip(cams, views, writers)):
             rcam = cam if view is None else view.virtual
             pose_of = None if view is None or cam.line_time_s == 0.0 else view.sensor_row
-            radiance = np.mean([render(scene, atlas, rcam, *_sensor_poses(fused, offset, cam, rcam.height, t + td),
-                                       pose_of)[0] for t in t_ns[j] + dt], axis=0)
+            radiance = np.mean([render(scene, atlas, rcam, *_camera_rows(b, cam, rcam.height), pose_of)[0]
+                                for b in body], axis=0)
             if view is not None:
                 radiance = view(radiance)
             a, b = exposure[cam.name][0][j], exposure[cam.name][1][j]
@@ -167,21 +168,27 @@ def _readout_nodes(exposure_ns: np.ndarray, cfg: SimConfig, n: int = 4) -> np.nd
     ~1 mrad off the IMU's motion at 5 rad/s^2)."""
     if cfg.line_time_s == 0.0:
         return None
-    readout = (cfg.resolution[1] - 1) * cfg.line_time_s * 1e9
+    readout = cfg.readout_s * 1e9
     return (exposure_ns[:, None] + np.round(np.arange(1, n + 1) * readout / n).astype(np.int64)).ravel()
 
 
-def _sensor_poses(fused, offset: np.ndarray, cam: CameraCalib, rows: int,
-                  t0_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Camera poses of ``cam``'s sensor rows, row r at ``t0_ns + r * line_time`` ((H,3,3),
-    (H,3)); for a global shutter one pose repeated ``rows`` times (the rendered image's
-    height)."""
+def _body_rows(fused, offset: np.ndarray, cam: CameraCalib, t0_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Body poses ``(p_w, R_w_b)`` ((n,3), (n,3,3)) of the sensor rows of the rig's cameras
+    (they share ``cam``'s height and line time), row r at ``t0_ns + r * line_time``; n = 1
+    for a global shutter."""
     if cam.line_time_s == 0.0:
-        p_w, R_w = interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, np.array([t0_ns]))
+        return interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, np.array([t0_ns]))
+    t = t0_ns + np.round(np.arange(cam.resolution[1]) * cam.line_time_s * 1e9).astype(np.int64)
+    return interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, t)
+
+
+def _camera_rows(body: tuple[np.ndarray, np.ndarray], cam: CameraCalib,
+                 rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """``cam``'s row poses from ``_body_rows``' ``body``: (H,3,3), (H,3); a global
+    shutter's one pose repeated ``rows`` times (the rendered image's height)."""
+    p_w, R_w = body
+    if len(p_w) == 1:
         return camera_row_poses(R_w.repeat(rows, 0), p_w.repeat(rows, 0), cam.T_b_c)
-    h = cam.resolution[1]
-    t = t0_ns + np.round(np.arange(h) * cam.line_time_s * 1e9).astype(np.int64)
-    p_w, R_w = interpolate_poses(fused.t_ns, fused.p_w + offset, fused.q_wxyz, t)
     return camera_row_poses(R_w, p_w, cam.T_b_c)
 
 
