@@ -59,7 +59,8 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.image_ops import ImageSampler
-from factors.photometric_warp import pixel_row_s, sensor_rows
+from factors.photometric_shutter import Shutter, cross, rolled_bearings, target_row_s
+from factors.photometric_warp import pixel_row_s
 
 PATTERN = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]],
                    dtype=np.float64)
@@ -165,47 +166,6 @@ class PhotoEval:
     uv: np.ndarray
 
 
-def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """a x b over the last axis into ``out`` (np.cross is slow for small arrays)."""
-    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
-    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
-    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-    return out
-
-
-@dataclass(frozen=True, eq=False)
-class Shutter:
-    """Rolling shutter of one photometric term (seed 004's row time, to first order in it):
-    row y of an image is exposed ``y * line_time_s`` after its row 0, whose time is the
-    frame's state time, and over the readout each camera moves along a constant twist
-    ``[omega (rad/s), v (m/s)]`` (6,) in its own frame, so a point p_c of the row-0 camera
-    is at p_c - s (omega x p_c + v) in the camera of the row exposed s later.
-    ``host``, ``target``: the two cameras' twists (constants of the factor, as the KLT
-    factors' predicted image velocities). The host's whole pattern takes its centre row's
-    time (``HostPatch.uv``; 2 rows are ~60 us); the target row is the projected row.
-    ``host_rows``, ``target_rows``: the two cameras' ``factors.photometric_warp.row_model``
-    where a lens bends the sensor rows (a row's time is its *sensor* row's); None: the
-    undistorted pinhole row."""
-
-    line_time_s: float
-    host: np.ndarray
-    target: np.ndarray
-    host_rows: np.ndarray | None = None
-    target_rows: np.ndarray | None = None
-
-
-def rolled_bearings(bearing: np.ndarray, row_s: np.ndarray, twist: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Host bearings f (N, P, 3) of points seen ``row_s`` (N,) s after the host's row 0,
-    moved back to row 0 along the host camera's ``twist`` [omega, v] (6,) to first order:
-    (f + s (omega x f) (N, P, 3), s v (N, 3)); the scaled point is the first plus rho times
-    the second."""
-    s = np.asarray(row_s, float)[:, None, None]
-    w, v = np.asarray(twist[:3], float), np.asarray(twist[3:], float)
-    f = bearing + s * _cross(np.broadcast_to(w, bearing.shape), bearing, np.empty(bearing.shape))
-    return f, s[:, :, 0] * v
-
-
 def host_points(host: HostPatch, rho: np.ndarray, shutter: Shutter | None
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The scaled host points rho p_ci (N, P, 3) in the row-0 host camera and their
@@ -235,7 +195,7 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     if rolling:
         w, v = np.asarray(shutter.target[:3], float), np.asarray(shutter.target[3:], float)
         s, ds_dx, ds_dy = target_row_s(shutter, K, q, zs)
-        a = _cross(np.broadcast_to(w, q.shape), q, np.empty(q.shape)) + rr * v
+        a = cross(np.broadcast_to(w, q.shape), q, np.empty(q.shape)) + rr * v
         qs = q - s * a
         front &= qs[..., 2] > MIN_Z
         zs = np.where(front, qs[..., 2], 1.0)
@@ -256,25 +216,13 @@ def _warp(host: HostPatch, rho: np.ndarray, R: np.ndarray, t: np.ndarray, K: Pin
     zq = np.where(valid, z, 1.0)
     da = np.sum(drdq * a, -1)
     drdrho = -s[..., 0] * (drdq @ v)
-    drdq = drdq - s * _cross(drdq, np.broadcast_to(w, q.shape), np.empty(q.shape))
+    drdq = drdq - s * cross(drdq, np.broadcast_to(w, q.shape), np.empty(q.shape))
     kx, ky = ds_dx / zq, ds_dy / zq
     drdq[..., 0] -= da * kx
     drdq[..., 1] -= da * ky
     drdq[..., 2] += da * (kx * q[..., 0] + ky * q[..., 1]) / zq
     drdrho = drdrho + drdq @ t + np.sum((drdq @ R) * sv, -1)
     return q, np.stack([u, v_px], -1), I, drdq, valid, drdrho, f
-
-
-def target_row_s(shutter: Shutter, K: Pinhole, q: np.ndarray, z: np.ndarray):
-    """Row time s (..., 1) of the target points q (..., 3) (depth ``z``) and its
-    derivatives in q0 / z and q1 / z (...,): the sensor row of ``shutter.target_rows``, or
-    the pinhole row of ``K``."""
-    lt = shutter.line_time_s
-    if shutter.target_rows is None:
-        return (lt * (K.fy * q[..., 1] / z + K.cy))[..., None], np.zeros(z.shape), np.full(z.shape, lt * K.fy)
-    x, y = (q[..., 0] / z).ravel(), (q[..., 1] / z).ravel()
-    row, gx, gy = sensor_rows(np.ascontiguousarray(x), np.ascontiguousarray(y), shutter.target_rows)
-    return (lt * row).reshape(z.shape)[..., None], (lt * gx).reshape(z.shape), (lt * gy).reshape(z.shape)
 
 
 def _affine(host: HostPatch, I: np.ndarray, valid: np.ndarray, ab_i: np.ndarray,
@@ -307,12 +255,12 @@ def temporal_eval(T_w_bi: gtsam.Pose3, T_w_bj: gtsam.Pose3, rho: np.ndarray, ab_
     g_b = drdq @ R_b_c.T                       # dr/dq R_c_b  (row vectors)
     q_bj = q @ R_b_c.T + rr * t_b_c
     J_pj = np.empty(r.shape + (6,))
-    _cross(g_b, q_bj, J_pj[..., :3])
+    cross(g_b, q_bj, J_pj[..., :3])
     np.multiply(-rr, g_b, out=J_pj[..., 3:])
     h = g_b @ T_bj_bi.rotation().matrix()      # dr/dq R_c_b R_bj_bi
     q_bi = f @ R_b_c.T + rr * t_b_c
     J_pi = np.empty(r.shape + (6,))
-    _cross(q_bi, h, J_pi[..., :3])             # -(h x q_bi)
+    cross(q_bi, h, J_pi[..., :3])             # -(h x q_bi)
     np.multiply(rr, h, out=J_pi[..., 3:])
     J = {"pose_i": J_pi, "pose_j": J_pj, "rho": dr_drho[..., None],
          "ab_i": J_ab_i, "ab_j": J_ab_j}

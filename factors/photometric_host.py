@@ -20,7 +20,7 @@ affine and, without the stereo term, scale directions): eps regularizes them.
 
 With a rolling shutter (``HostShutter``) each image row is exposed at its own time and
 the host points and targets move along their cameras' twists over the readout
-(``factors.photometric.Shutter``); the keys and the square-root form stay the same.
+(``factors.photometric_shutter.Shutter``); the keys and the square-root form stay the same.
 
 Weights as ``factors.photometric`` with V = 0 (rho is estimated): temporal
 w = c^2 / (c^2 + |grad I_host|^2) / (2 sigma_I^2), stereo the same times lambda,
@@ -37,10 +37,11 @@ import gtsam
 import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
-from factors.photometric import HostPatch, PhotometricParams, Pinhole, rolled_bearings
+from factors.photometric import HostPatch, PhotometricParams, Pinhole
+from factors.photometric_shutter import rolled_bearings
 from factors.jit import njit as _njit
 from factors.photometric_kernel import host_system
-from factors.photometric_warp import DARK, SATURATED, pixel_row_s, row_model
+from factors.photometric_warp import DARK, SATURATED, pixel_row_s, rows_or_pinhole
 
 try:
     from numba.typed import List
@@ -104,7 +105,7 @@ class HostPoints:
 
 @dataclass(frozen=True, eq=False)
 class HostShutter:
-    """The rolling shutter of a host factor's images (``factors.photometric.Shutter`` per
+    """The rolling shutter of a host factor's images (``factors.photometric_shutter.Shutter`` per
     pair): ``line_time_s`` s per row and the cam0 twists [omega (rad/s), v (m/s)] in the
     camera frame, ``twists`` (M + 1, 6), host first, then the targets in key order; the
     right camera's is the host's moved by T_c1_c0. Constants of the factor, as
@@ -133,9 +134,8 @@ def shutter_args(shutter: HostShutter | None, bearing: np.ndarray, uv: np.ndarra
     bw, sv = rolled_bearings(bearing, pixel_row_s(shutter.line_time_s, uv, shutter.rows), tw[0])
     xi_r = T_r_l.AdjointMap() @ tw[0]
     T = tw[1:] if M else np.zeros((1, 6))
-    rm_l = row_model(_kvec(K)) if shutter.rows is None else shutter.rows
-    rm_r = row_model(_kvec(K_r)) if shutter.right_rows is None else shutter.right_rows
-    sh = np.concatenate([[float(shutter.line_time_s)], rm_l, rm_r])
+    sh = np.concatenate([[float(shutter.line_time_s)], rows_or_pinhole(shutter.rows, K),
+                         rows_or_pinhole(shutter.right_rows, K_r)])
     return (np.ascontiguousarray(bw), sv, np.ascontiguousarray(T[:, :3]),
             np.ascontiguousarray(T[:, 3:]), xi_r[:3].copy(), xi_r[3:].copy(), sh)
 

@@ -25,7 +25,7 @@ of error there must not discard a good residual for good); a point whose static 
 ``outlier_rms`` sits out the linearization, one whose depth reaches the bounds is
 switched off in ``alive`` for good.
 
-Rolling shutter (``factors.photometric.Shutter``, first order in the row time): the
+Rolling shutter (``factors.photometric_shutter.Shutter``, first order in the row time): the
 host points arrive as ``bearing + rho sv`` (``factors.photometric.host_points``: each
 point moved back from its row's time to the host's row 0), and each target (the right
 camera for the stereo term) is sampled at its row's time along its camera twist

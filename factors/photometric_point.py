@@ -15,8 +15,8 @@ import numpy as np
 
 from factors.adapter import FactorHealth, custom_factor
 from factors.image_ops import ImageSampler
-from factors.photometric import (MIN_Z, HostPatch, PhotoEval, PhotometricParams, Pinhole, _cross,
-                                 sqrt_weights, stereo_eval)
+from factors.photometric import MIN_Z, HostPatch, PhotoEval, PhotometricParams, Pinhole, sqrt_weights, stereo_eval
+from factors.photometric_shutter import cross
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,12 +70,12 @@ def point_eval(T_w_bi: gtsam.Pose3, rho: float, ab_i: np.ndarray, host: HostPatc
     g_b = drdq @ R_b_c.T
     q_bj = q @ R_b_c.T + rho * t_b_c
     J_pj = np.empty((M, P, 6))
-    _cross(g_b, q_bj, J_pj[..., :3])
+    cross(g_b, q_bj, J_pj[..., :3])
     np.multiply(-rho, g_b, out=J_pj[..., 3:])
     hh = np.einsum("mpk,mkl->mpl", g_b, R_jb)
     q_bi = f @ R_b_c.T + rho * t_b_c
     J_pi = np.empty((M, P, 6))
-    _cross(np.broadcast_to(q_bi, hh.shape), hh, J_pi[..., :3])
+    cross(np.broadcast_to(q_bi, hh.shape), hh, J_pi[..., :3])
     np.multiply(rho, hh, out=J_pi[..., 3:])
     dr_drho = np.einsum("mpk,mk->mp", drdq, t_ji)
     J = {"pose_i": J_pi, "pose_j": J_pj, "rho": dr_drho[..., None],

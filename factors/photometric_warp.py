@@ -1,7 +1,7 @@
 """Numba warps of the photometric kernels (``factors.photometric_kernel``,
 ``factors.trackframe_kernel``): a host point's scaled form q = R f + rho t into a target
 image, bilinear sampling of [I, dI/du, dI/dv], dr/dq, and the rolling-shutter variant
-(``factors.photometric.Shutter``, first order in the row time). The numpy reference of
+(``factors.photometric_shutter.Shutter``, first order in the row time). The numpy reference of
 the same arithmetic is ``factors.photometric._warp``, whose Jacobians the shared suite
 checks numerically.
 
@@ -95,6 +95,12 @@ def row_model(K, model: str = "none", D=(0.0, 0.0, 0.0, 0.0)) -> np.ndarray:
     return np.concatenate([np.asarray(K, float).reshape(4), [_MODELS[model]], d])
 
 
+def rows_or_pinhole(rows: np.ndarray | None, K) -> np.ndarray:
+    """``rows`` (a ``row_model``), or where None (no lens) the pinhole row model of ``K``
+    (anything with fx, fy, cx, cy)."""
+    return row_model((K.fx, K.fy, K.cx, K.cy)) if rows is None else rows
+
+
 @_njit
 def sensor_row(x, y, m):
     """Sensor row (full-resolution pixels) of the undistorted normalized point (x, y) in
@@ -148,7 +154,7 @@ def pixel_row_s(line_time_s: float, uv: np.ndarray, rows: np.ndarray | None) -> 
 @_njit
 def _warp_rs(f0, f1, f2, rho, R, t, K, stack, smp, dq, w, vel, lt, rm, clip):
     """:func:`_warp` (``clip``; else :func:`_warp_any`) in a rolling-shutter target
-    (``factors.photometric.Shutter``: twist ``w``, ``vel`` of the target camera, ``lt`` s
+    (``factors.photometric_shutter.Shutter``: twist ``w``, ``vel`` of the target camera, ``lt`` s
     per sensor row, ``rm`` the target camera's :func:`row_model` at full resolution, which a
     pyramid level's TrackFrame passes too): q = R f + rho t is the point in the row-0
     camera, the image is sampled at q_s = q - s (w x q + rho vel), s = lt * row(q).

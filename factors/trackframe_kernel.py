@@ -13,7 +13,7 @@ for clipped pixels:
     row = sqrt(W) [r ; (g x q, -rho g) ; -s (I_ref - b_i), -1]     (g = dr/dq),
 
 the pose columns along ``T Exp(xi)``, xi = [omega, v] (GTSAM). With a rolling shutter
-(``lt`` > 0, ``factors.photometric.Shutter``) the keyframe points arrive moved back to
+(``lt`` > 0, ``factors.photometric_shutter.Shutter``) the keyframe points arrive moved back to
 its row 0 (``bearing + rho sv``) and the new frame is sampled at each row's time along
 its camera twist (``w``, ``vel``; ``factors.photometric_warp._warp_rs``, sensor rows of
 the full-resolution camera ``rm``, a ``row_model``), g = dr/dq through that, and dr/drho = g (t + R sv)

@@ -23,7 +23,8 @@ import gtsam
 import numpy as np
 
 from factors.image_ops import AnalyticImage, BilinearImage, SmoothTexture
-from factors.photometric import (Pinhole, PhotometricParams, Shutter, make_host_patch, stereo_eval,
+from factors.photometric_shutter import Shutter
+from factors.photometric import (Pinhole, PhotometricParams, make_host_patch, stereo_eval,
                                  stereo_factor, stereo_residual_fn, temporal_eval,
                                  temporal_factor, temporal_residual_fn)
 from factors.photometric_point import StereoTerm, point_factor, point_kinds, point_residual_fn
@@ -82,7 +83,7 @@ def temporal_case(name: str, *, rho_target: float | None = None, baseline: float
                   identity_extrinsic: bool = False, bilinear: bool = False,
                   degenerate: bool = False, rolling: bool | str = False) -> JacobianCase:
     """A temporal factor at a random state; options select the degenerate variants;
-    ``rolling``: both images with a rolling shutter (``factors.photometric.Shutter``; a
+    ``rolling``: both images with a rolling shutter (``factors.photometric_shutter.Shutter``; a
     ``LENS`` name: its rows bent by that lens)."""
 
     def build(rng: np.random.Generator):

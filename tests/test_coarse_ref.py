@@ -42,7 +42,8 @@ def test_moved_points_with_a_rolling_shutter_are_the_warp_of_the_factors():
     """With a ``Shutter`` (host = h's camera twist, target = c's) a moved point is where
     the photometric factors' warp (``factors.photometric._warp``) samples camera c, and its
     inverse depth is c's at that row's time; the shutter moves it by pixels."""
-    from factors.photometric import HostPatch, Shutter, _warp
+    from factors.photometric import HostPatch, _warp
+    from factors.photometric_shutter import Shutter
     rng = np.random.default_rng(1)
     uv_h = rng.uniform([40, 40], [W - 40, H - 40], (100, 2))
     rho_h = rng.uniform(0.2, 1.5, 100)

@@ -331,7 +331,7 @@ def test_accelerometer_offset_contradicted_by_trackframe_is_bridged(sim_exposure
 def test_rolling_shutter_is_modelled_in_the_photometric_modes(tmp_path):
     """4 s of half-resolution stereo with a rolling shutter (60 us a row at 240 rows, the
     readout of 30 us at full resolution): the host factors and TrackFrame take each row
-    at its time (``factors.photometric_host.HostShutter``, ``factors.photometric.Shutter``)
+    at its time (``factors.photometric_host.HostShutter``, ``factors.photometric_shutter.Shutter``)
     and beat the same run told the cameras have a global shutter (measured: direct 0.8
     vs 3.9 mm, hybrid 0.6 vs 4.7 mm; seed 5: 3.3 vs 8.0 mm, 9.7 vs 25.5 mm)."""
     from vio.sim import simulate

@@ -12,8 +12,8 @@ import pytest
 
 from cases_photometric import H, LENS, W, K, analytic_image, random_pose
 from factors.image_ops import BilinearImage
-from factors.photometric import (PhotometricParams, Shutter, make_host_patch, sqrt_weights,
-                                 stereo_eval, temporal_eval)
+from factors.photometric import PhotometricParams, make_host_patch, sqrt_weights, stereo_eval, temporal_eval
+from factors.photometric_shutter import Shutter
 from factors.photometric_warp import row_model
 from factors.photometric_host import (HostParams, HostPoints, HostShutter, StereoHost, host_factor,
                                       host_linearize, square_root)

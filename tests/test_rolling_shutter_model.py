@@ -1,4 +1,4 @@
-"""The rolling-shutter warp of the photometric factors (``factors.photometric.Shutter``)
+"""The rolling-shutter warp of the photometric factors (``factors.photometric_shutter.Shutter``)
 against the simulator's exact row geometry (``vio.sim``: row r of an image exposed at
 stamp + td + r * line_time, the camera at its trajectory pose of that instant): the
 Jacobian suite checks the warp's derivatives, this checks that the warp is the camera."""
@@ -8,7 +8,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors.photometric import HostPatch, Pinhole, Shutter, temporal_eval
+from factors.photometric import HostPatch, Pinhole, temporal_eval
+from factors.photometric_shutter import Shutter
 from vio.sim.config import SimConfig
 from vio.sim.render import sim_camera
 from vio.sim.trajectory import make_trajectory

@@ -14,8 +14,8 @@ import pytest
 
 from cases_photometric import H, LENS, W, K, analytic_image
 from factors.image_ops import BilinearImage
-from factors.photometric import (PhotometricParams, Shutter, make_host_patch, rolled_bearings,
-                                 sqrt_weights, temporal_eval)
+from factors.photometric import PhotometricParams, make_host_patch, sqrt_weights, temporal_eval
+from factors.photometric_shutter import Shutter, rolled_bearings
 from factors.photometric_warp import pixel_row_s, row_model
 from factors.trackframe_kernel import track_rows
 

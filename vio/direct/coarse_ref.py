@@ -21,7 +21,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from factors.photometric import Pinhole, Shutter, rolled_bearings, target_row_s
+from factors.photometric import Pinhole
+from factors.photometric_shutter import Shutter, rolled_bearings, target_row_s
 from factors.photometric_warp import pixel_row_s
 from vio.backend.graph import X
 from vio.direct.trackframe import TrackingReference, make_reference
@@ -38,7 +39,7 @@ def host_in_camera(K: Pinhole, T_c_h: gtsam.Pose3, uv_h: np.ndarray, rho_h: np.n
     (``T_c_h`` the host camera in c): pixels (N, 2), inverse depths (N,, 1/m) and a mask
     (N,) of those more than 1 mm in front of c (the others' pixels and depths are
     placeholders). ``shutter`` (host = h's camera twist, target = c's): each point from
-    its host row's time to c's row that sees it (``factors.photometric.Shutter``); the
+    its host row's time to c's row that sees it (``factors.photometric_shutter.Shutter``); the
     inverse depth is then c's at that row's time."""
     f = K.unproject(uv_h)
     rolling = shutter is not None and shutter.line_time_s > 0.0

@@ -13,7 +13,7 @@ import time
 import gtsam
 import numpy as np
 
-from factors.photometric import Shutter
+from factors.photometric_shutter import Shutter
 from vio.backend.bridge import contradicts, within_hold
 from vio.backend.graph import A, B, X
 from vio.direct.coarse_ref import keyframe_reference

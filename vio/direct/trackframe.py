@@ -29,8 +29,9 @@ import gtsam
 import numpy as np
 
 from factors.image_ops import BilinearImage, pyramid, scale_intrinsics, scale_pixels
-from factors.photometric import HostPatch, Pinhole, Shutter, make_host_patch, rolled_bearings
-from factors.photometric_warp import pixel_row_s, row_model
+from factors.photometric import HostPatch, Pinhole, make_host_patch
+from factors.photometric_shutter import Shutter, rolled_bearings
+from factors.photometric_warp import pixel_row_s, rows_or_pinhole
 from factors.photometric_kernel import MAX_LOG_GAIN
 from factors.trackframe_kernel import track_rows
 from vio.conventions import pose_from_matrix
@@ -161,9 +162,7 @@ def _shutter_args(ref: TrackingReference, lev: int, shutter: Shutter | None) -> 
     lt = float(shutter.line_time_s)
     bw, sv = rolled_bearings(b, pixel_row_s(lt, ref.patches[0].uv, shutter.host_rows), shutter.host)
     tw = np.asarray(shutter.target, float)
-    K0 = ref.K[0]
-    rm = row_model((K0.fx, K0.fy, K0.cx, K0.cy)) if shutter.target_rows is None else shutter.target_rows
-    return bw, sv, tw[:3].copy(), tw[3:].copy(), lt, rm
+    return bw, sv, tw[:3].copy(), tw[3:].copy(), lt, rows_or_pinhole(shutter.target_rows, ref.K[0])
 
 
 def _level_problem(ref: TrackingReference, lev: int, target: BilinearImage, cfg: TrackConfig,
@@ -231,7 +230,7 @@ def track_frame(ref: TrackingReference, image: np.ndarray | Sequence[BilinearIma
                 shutter: Shutter | None = None) -> TrackResult:
     """Align ``image`` (H, W, or its ``image_pyramid``) to the keyframe ``ref``, starting from ``T_kf_new_init`` and
     ``ab_init`` (default: the keyframe's affine), with an optional motion ``prior``;
-    ``shutter``: both images' rolling shutter (``factors.photometric.Shutter``, host = the
+    ``shutter``: both images' rolling shutter (``factors.photometric_shutter.Shutter``, host = the
     keyframe camera's twist, target = the new camera's)."""
     cfg = config
     if ref.levels < cfg.levels:
