@@ -148,8 +148,8 @@ def _render_frames(mav0: Path, cams: list[CameraCalib], scene, atlas, cfg: SimCo
         for k, (cam, view, wr) in enumerate(zip(cams, views, writers)):
             rcam = cam if view is None else view.virtual
             pose_of = None if view is None or cam.line_time_s == 0.0 else view.sensor_row
-            radiance = np.mean([render(scene, atlas, rcam, *_camera_rows(b, cam, rcam.height), pose_of)[0]
-                                for b in body], axis=0)
+            radiance = np.mean([render(scene, atlas, rcam, *_camera_rows(sample, cam, rcam.height), pose_of)[0]
+                                for sample in body], axis=0)
             if view is not None:
                 radiance = view(radiance)
             a, b = exposure[cam.name][0][j], exposure[cam.name][1][j]
