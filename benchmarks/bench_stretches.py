@@ -3,7 +3,7 @@ other frames, in several modes.
 
     python benchmarks/bench_stretches.py [DATA] [--starts 10,20,...] [--modes stereo,direct,hybrid]
                                          [--every 10] [--last 220] [--config overrides.yaml]
-                                         [--frame-step N]
+                                         [--frame-step N] [--jitter N]
 
 For each start frame S a temporary copy of ``DATA`` (default the real MH_01 stereo set)
 is made whose camera lists begin at S (images, IMU and ground truth are symlinks, only
@@ -14,6 +14,12 @@ seconds after the first frame; a monocular start's scale sigma, ``InitInfo.scale
 the backend's frame time after initialization (p95 / max, ms; contended when other work
 runs), the Sim3-aligned ATE and the estimate's scale against the ground truth (%, negative: the trajectory is short). The last lines count, over the
 stretches, how often hybrid is at or below stereo and give each mode's ATE range.
+``--jitter N`` runs every stretch N more times with the sync layer's td moved by 1, 2, ...
+us (physically nothing; the runs are chaotic enough that it moves single stretches by
+up to ~0.9 mm) and prints each variant's mean and their spread: the noise floor a change
+of the 12-stretch mean has to clear. Stop 76, real MH_01 stereo from 0, 20, ..., 220,
+`--jitter 2`: 5.28 / 5.35 / 5.37 mm (the stretch from frame 120: 5.74 / 6.51 / 5.16); with
+`lk_eps` 0.0099 / 0.0101 instead of 0.01 the mean was 5.40 / 5.55 mm.
 Measured at ff89549 (starts 10, 20, ..., 220 of real MH_01; every stretch initialized by
 stereo after 0.5 s with a pose from its first frame): direct 5.1-6.0 mm, hybrid 4.5-5.4 mm,
 stereo 4.7-7.4 mm, hybrid at or below stereo on 20 of 22 (above by 0.3 mm from frames
@@ -23,6 +29,7 @@ stereo 4.7-7.4 mm, hybrid at or below stereo on 20 of 22 (above by 0.3 mm from f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import shutil
 import sys
@@ -74,9 +81,14 @@ def stretch(src: Path, start: int, out: Path, step: int = 1) -> Path:
     return out
 
 
-def run(folder: Path, mode: str, config: Path | None = None) -> dict:
+def run(folder: Path, mode: str, config: Path | None = None, td_shift_s: float = 0.0) -> dict:
+    """One run of ``mode`` on ``folder``; ``td_shift_s`` added to the sync layer's td (the
+    ``--jitter`` variants)."""
     data = load_euroc(folder)
-    res = run_dataset(data, load_config(config, mode=mode), mode=mode)
+    cfg = load_config(config, mode=mode)
+    if td_shift_s:
+        cfg = dataclasses.replace(cfg, td_s=cfg.td_s + td_shift_s)
+    res = run_dataset(data, cfg, mode=mode)
     t, p, q = res.arrays()
     e = evaluate(t, p, q, data.groundtruth)
     s = evaluate(t, p, q, data.groundtruth, sim3=True)
@@ -102,12 +114,15 @@ def main() -> None:
     ap.add_argument("--config", type=Path, default=None, help="YAML overrides, as vio run --config")
     ap.add_argument("--frame-step", type=int, default=1,
                     help="keep every Nth camera frame from each start (10 Hz from EuRoC's 20 Hz: 2)")
+    ap.add_argument("--jitter", type=int, default=0,
+                    help="also run every stretch N more times, the sync layer's td moved by 1, 2, ... us")
     a = ap.parse_args()
     logging.disable(logging.WARNING)
     starts = ([int(s) for s in a.starts.split(",")] if a.starts
               else list(range(a.every, a.last + 1, a.every)))
     modes = a.modes.split(",")
     table: dict[int, dict[str, dict]] = {}
+    jittered: dict[tuple[str, int], dict[int, dict]] = {}
     print(f"{'start':>5s} {'mode':7s} {'ATE mm':>7s} {'poses':>9s} {'init (decided/first pose)':28s} "
           f"{'p95 ms':>7s} {'max ms':>7s} {'Sim3 mm':>8s} {'scale %':>8s}")
     with tempfile.TemporaryDirectory(prefix="vio_stretch_") as tmp:
@@ -117,12 +132,21 @@ def main() -> None:
                 r = table.setdefault(s, {})[m] = run(folder, m, a.config)
                 print(f"{s:5d} {m:7s} {r['ate_mm']:7.2f} {r['poses']:4d}/{r['frames']:4d} {r['init']:28s} "
                       f"{r['p95']:7.1f} {r['max']:7.1f} {r['sim3_mm']:8.2f} {r['scale_pct']:+8.2f}", flush=True)
+                for j in range(1, a.jitter + 1):
+                    rj = jittered.setdefault((m, j), {})[s] = run(folder, m, a.config, j * 1e-6)
+                    print(f"{s:5d} {m:7s} {rj['ate_mm']:7.2f}  (td +{j} us)", flush=True)
     for m in modes:
         v = [table[s][m]["ate_mm"] for s in starts]
         sc = [table[s][m]["scale_pct"] for s in starts]
         print(f"{m}: ATE {min(v):.1f}-{max(v):.1f} mm, mean {np.mean(v):.2f} mm over {len(v)} stretches; "
               f"Sim3 mean {np.mean([table[s][m]['sim3_mm'] for s in starts]):.2f} mm, scale mean "
               f"{np.mean(sc):+.2f} %, mean |scale| {np.mean(np.abs(sc)):.2f} %")
+        if a.jitter:
+            means = [np.mean(v)] + [np.mean([jittered[(m, j)][s]["ate_mm"] for s in starts])
+                                    for j in range(1, a.jitter + 1)]
+            print(f"{m}: mean over the stretches as is and with td moved by 1..{a.jitter} us: "
+                  f"{' / '.join(f'{x:.2f}' for x in means)} mm; their mean {np.mean(means):.2f} mm, "
+                  f"spread {min(means):.2f}-{max(means):.2f} mm")
     if {"hybrid", "stereo"} <= set(modes):
         ok = sum(table[s]["hybrid"]["ate_mm"] <= table[s]["stereo"]["ate_mm"] for s in starts)
         print(f"hybrid at or below stereo on {ok} of {len(starts)} stretches")
