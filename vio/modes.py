@@ -148,17 +148,6 @@ MODE_DEFAULTS["stereo"]["frontend"]["max_track_len"] = 40
 # same renders (7 of 8 better, one equal: 0.145 -> 0.083 % of the path) and real MH_01 mono (12 starts
 # 5.96 -> 5.57 mm) gain; nor hybrid (benchmarks/README.md, stop 67)
 MODE_DEFAULTS["stereo"]["frontend"]["anchor"] = True
-# stereo: a 15-px LK window instead of 21 (FrontendConfig.lk_window), the anchors taking
-# each track back to its first patch (vio.frontend.anchor). Real MH_01 from 12 starts (0,
-# 20, ..., 220), means as is and with td moved by 1 / 2 us (bench_stretches.py --jitter 2):
-# 5.28 / 5.35 / 5.37 -> 5.39 / 5.37 / 5.35 mm (5.33 -> 5.37, inside each one's spread);
-# 6 starts at 10 Hz (--frame-step 2) 5.94 -> 5.77 mm; from frame 0 5.6 -> 5.4 mm; V1_01
-# static 1.0 -> 1.1 mm; seven lens renders (MH_03@60 RS, V2_02@25 RS, V1_02@20, MH_04@30 RS,
-# V1_03@40 blur + exposure, MH_05@40 RS + blur, V1_03@30 RS) 6.6 / 6.3 / 3.7 / 10.2 / 5.3 /
-# 17.4 / 6.6 -> 5.5 / 6.2 / 3.3 / 10.1 / 4.7 / 13.5 / 6.9 mm; KLT worker CPU over five
-# alternated pairs 8.03 -> 7.40 s (bench_profile.py; benchmarks/README.md, stop 76). Not
-# mono, whose tracks have no anchors (real MH_05 mono 0.0478 -> 0.0695 m at 15 px)
-MODE_DEFAULTS["stereo"]["frontend"]["lk_window"] = 15
 # hybrid likewise (its photometric points read the keyframes' pairs themselves): real MH_01
 # from frame 0 4.9 mm either way, 7 stretches 5.00 -> 5.02 mm, renders seeds 11 / 14 (6 starts
 # each) 35.13 / 10.09 -> 35.11 / 10.09 mm; alternated medians of 5, whole process 1.93 ->
