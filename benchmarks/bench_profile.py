@@ -91,11 +91,10 @@ def latency_by_kind(res) -> list[str]:
     outlier update and bookkeeping, ``SolverConfig.outlier_update`` / ``bookkeeping``),
     and the rest (IMU propagation and output). A run's p95 is set by the first two."""
     import numpy as np
-    outs = res.outputs[res.n_init:]
-    if not outs:
+    ms = res.frame_ms()
+    if not ms.size:
         return []
-    ms = np.array([o.seconds for o in outs]) * 1e3
-    kf = np.array([bool(o.keyframe) for o in outs])
+    kf = np.array([bool(o.keyframe) for o in res.outputs[res.n_init:]])
     after = np.r_[False, kf[:-1]] & ~kf
     lines = []
     for name, m in (("keyframe", kf), ("after keyframe", after), ("other", ~kf & ~after)):
