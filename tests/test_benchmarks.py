@@ -422,6 +422,22 @@ def test_imu_gt_consistency_is_one_on_consistent_motion_and_sees_a_scaled_imu():
     assert consistency(t, p, acc, R, 0.25, fit_bias=False)[0] == pytest.approx(1.0, abs=3e-3)
 
 
+def test_imu_gt_consistency_per_axis_finds_one_hot_accelerometer_axis():
+    """``per_axis``: an accelerometer whose y axis reads 3 % hot (and a constant bias) on
+    an analytic path with gravity gives s = (1, 1 / 1.03, 1); a consistent IMU s = 1."""
+    from imu_gt_consistency import GRAVITY_W, per_axis
+    t = np.arange(0.0, 20.0, 0.005)
+    w = np.array([1.3, 0.7, 2.1])
+    p = np.sin(np.outer(t, w)) * [1.0, 0.5, 0.2]
+    f_b = -p * w ** 2 - GRAVITY_W                   # specific force, body = world axes
+    R = np.broadcast_to(np.eye(3), (len(t), 3, 3))
+    s, n = per_axis(t, p, f_b + GRAVITY_W, R, 0.5)
+    assert s == pytest.approx(np.ones(3), abs=2e-4) and n > 10
+    hot = f_b * [1.0, 1.03, 1.0] + [0.02, -0.01, 0.03]
+    s, _ = per_axis(t, p, hot + GRAVITY_W, R, 0.5)
+    assert s == pytest.approx([1.0, 1 / 1.03, 1.0], abs=2e-4)
+
+
 def test_keyframe_cost_times_every_keyframe_and_restores_the_estimator():
     import keyframe_cost
     from vio.backend import estimator, smoother
