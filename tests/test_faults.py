@@ -354,6 +354,12 @@ def test_dropped_camera_frames(tmp_path):
     res, ate = _run(root)
     assert res.imu_gaps == 0 and res.imu_dropped == 0 and res.restarts == 0
     assert ate <= 0.04, ate
+    # the hole is reported: the interval from the last frame before it to the first after
+    assert res.camera_gaps == 1 and res.camera_gap_s == pytest.approx(0.55, abs=0.01)
+    from vio.io.euroc import load_euroc
+    from vio.run_summary import summary
+    faults = [ln for ln in summary(res, load_euroc(root)) if ln.startswith("faults")]
+    assert faults[0].endswith("1 camera gap(s) (0.55 s without frames)"), faults
 
 
 def test_a_dropped_packet_carries_its_imu_to_the_next_frame(tmp_path, caplog):

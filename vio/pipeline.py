@@ -18,6 +18,7 @@ import numpy as np
 from vio.backend.config import BackendConfig
 from vio.backend.estimator import Estimator
 from vio.backend.init import imu_stillness
+from vio.camera_gaps import CameraGapConfig, CameraGaps
 from vio.config import check_ranges
 from vio.direct.config import DirectConfig
 from vio.faults import ImuScreenConfig
@@ -47,6 +48,8 @@ class PipelineConfig:
     ``imu_lookahead_s``: IMU the sync layer serves past each frame (s): the td term
     needs the gyro over [t, t + td] (``vio.imu.KeyframeRates``); costs that latency.
     ``imu_screen``: IMU fault screening and gap detection in the sync layer (``vio.faults``).
+    ``camera_gaps``: stretches without camera frames, warned about and counted
+    (``vio.camera_gaps``).
     ``live``: the backend in its own process, each frame's pose from IMU propagation of
     its newest state without waiting (``vio.live``; not deterministic; off by default).
     ``td_prepass_s`` > 0 (the photometric modes' default, ``vio.modes``): a ``direct`` or
@@ -58,6 +61,7 @@ class PipelineConfig:
     live: bool = False
     imu_lookahead_s: float = 0.02
     imu_screen: ImuScreenConfig = field(default_factory=ImuScreenConfig)
+    camera_gaps: CameraGapConfig = field(default_factory=CameraGapConfig)
     trim_heap_every_s: float = 60.0
     tune_heap: bool = True
     backend: BackendConfig = field(default_factory=BackendConfig)
@@ -102,6 +106,7 @@ class Pipeline:
         self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
         self.imu_dropped = 0
         self.frames_dropped = 0                          # images missing or unreadable
+        self.camera_gaps = CameraGaps(cfg.camera_gaps)   # stretches without frames
         self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
         # the packet stream's sync layer follows the estimator's td (vio.run.td_feedback)
         self.td_fed_back = False
@@ -146,6 +151,7 @@ class Pipeline:
         initializing, this frame's once initialized, and at a dynamic initialization
         every frame of the aligned window (replayed through the estimator)."""
         t0 = time.perf_counter()
+        self.camera_gaps.frame(pkt.t_ns)
         if pkt.dropped:       # no vision for this frame: its IMU goes with the next one
             log.warning("t=%d ns: frame dropped (%s); its IMU carries over to the next frame", pkt.t_ns,
                         pkt.dropped)

@@ -59,6 +59,9 @@ class RunResult:
     imu_dropped: int = 0
     frames_dropped: int = 0
     """Frames skipped because their image was missing or unreadable (IMU carried over)."""
+    camera_gaps: int = 0
+    camera_gap_s: float = 0.0
+    """Stretches without camera frames and their total length (``vio.camera_gaps``)."""
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
     init: InitInfo | None = None
@@ -321,6 +324,7 @@ def _counters(res: RunResult, pipe, live: bool) -> None:
     res.imu_gap_s = sum(b - a for a, b in pipe.imu_gaps) * 1e-9
     res.imu_dropped = pipe.imu_dropped
     res.frames_dropped = pipe.frames_dropped
+    res.camera_gaps, res.camera_gap_s = len(pipe.camera_gaps.gaps), pipe.camera_gaps.seconds
 
 
 def _loop(it: Iterator[FramePacket], stage: Callable | None, pipe, res: RunResult, bar,

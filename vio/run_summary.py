@@ -26,6 +26,8 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
              + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
                 if res.frames_dropped else "")
+             + (f", {res.camera_gaps} camera gap(s) ({res.camera_gap_s:.2f} s without frames)"
+                if res.camera_gaps else "")
              + (f", {res.imu_contradicted} IMU interval(s) contradicted by vision, bridged"
                 if res.imu_contradicted else "")
              + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
