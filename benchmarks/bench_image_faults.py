@@ -10,11 +10,13 @@ Each fault ``CAMS:KIND:FRAME:N`` (CAMS ``cam0``, ``cam1`` or ``both``; KIND of
 copy of ``DATA`` (default the real MH_01 stereo set; ``vio.inject.image_fault``: the other
 images are links to the source), and each mode runs on it from its first frame;
 ``imu:offset:FRAME:N`` adds 6 m/s^2 to the accelerometer x over those frames
-(``vio.inject.imu_offset``), ``imu:gap:FRAME:N`` removes their IMU samples. Printed per
-fault and mode: ATE (mm, SE3-aligned), divergence restarts, re-initializations, keyframe
-intervals whose IMU vision contradicted (``BridgeConfig.imu_check``) and frames between
-keyframes output at their PnP pose (``BridgeConfig.frame_check``); the first row is the
-unaltered folder. The default faults are stop 55/56's table
+(``vio.inject.imu_offset``), ``imu:gap:FRAME:N`` removes their IMU samples;
+``frames:drop:FRAME:N`` removes those frames from both cameras (a camera gap,
+``vio.inject.drop_frames``). Printed per fault and mode: ATE (mm, SE3-aligned), divergence
+restarts, re-initializations, keyframe intervals whose IMU vision contradicted
+(``BridgeConfig.imu_check``), frames between keyframes output at their PnP pose
+(``BridgeConfig.frame_check``) and camera gaps reported (``vio.camera_gaps``); the first
+row is the unaltered folder. The default faults are stop 55/56's table
 (benchmarks/README.md): 1 s black / blurred / over-exposed in both cameras and 2 s of a
 covered camera from frame 150, the right camera covered for 2 s from frames 40, 100, 200,
 260, for 6 s from frame 60, and from frame 20 to the end. Asserts nothing.
@@ -32,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
 from vio.evaluation import evaluate  # noqa: E402
-from vio.inject import copy_dataset, frame_window, image_fault, imu_gap, imu_offset  # noqa: E402
+from vio.inject import copy_dataset, drop_frames, frame_window, image_fault, imu_gap, imu_offset  # noqa: E402
 from vio.io.euroc import load_euroc  # noqa: E402
 from vio.run import load_config, run_dataset  # noqa: E402
 
@@ -47,6 +49,11 @@ def faulty_copy(src: Path, fault: str, out: Path) -> Path:
     cams, kind, first, n = fault.split(":")
     t_s, dur_s = frame_window(src, int(first), int(n))
     root = copy_dataset(src, out)
+    if cams == "frames":
+        if kind != "drop":
+            raise ValueError(f"unknown frame fault {kind!r} in {fault!r} (drop)")
+        drop_frames(root, t_s, dur_s)
+        return root
     if cams == "imu":
         if kind == "offset":
             imu_offset(root, t_s, dur_s, (6.0, 0.0, 0.0))
@@ -65,7 +72,7 @@ def run(root: Path, mode: str, config: str | None) -> str:
     res = run_dataset(data, load_config(config, mode=mode), mode=mode)
     e = evaluate(*res.arrays(), data.groundtruth)
     return (f"{e.ate_rmse * 1e3:8.1f} ({res.restarts}/{res.reinits}/{res.imu_contradicted}/"
-            f"{res.frames_contradicted})")
+            f"{res.frames_contradicted}/{res.camera_gaps})")
 
 
 def main() -> None:
@@ -77,12 +84,13 @@ def main() -> None:
     args = ap.parse_args()
     logging.disable(logging.WARNING)
     modes = args.modes.split(",")
-    print(f"{'fault':28s}" + "".join(f"{m:>18s}" for m in modes)
-          + "   ATE mm (restarts/re-initializations/IMU intervals contradicted/frames placed by PnP)")
+    print(f"{'fault':28s}" + "".join(f"{m:>20s}" for m in modes)
+          + "   ATE mm (restarts/re-initializations/IMU intervals contradicted/frames placed by PnP/"
+            "camera gaps)")
     with tempfile.TemporaryDirectory() as tmp:
         for fault in ["none", *args.faults.split(",")]:
             root = Path(args.data) if fault == "none" else faulty_copy(Path(args.data), fault, Path(tmp) / "copy")
-            print(f"{fault:28s}" + "".join(f"{run(root, m, args.config):>18s}" for m in modes), flush=True)
+            print(f"{fault:28s}" + "".join(f"{run(root, m, args.config):>20s}" for m in modes), flush=True)
 
 
 if __name__ == "__main__":

@@ -555,6 +555,21 @@ def test_direct_mode_keeps_its_points_with_the_right_camera_covered(tmp_path):
     assert ate < 0.008, f"direct, cam1 covered 2 s: ATE {ate:.4f} m"
 
 
+def test_image_fault_benchmark_drops_frames_from_both_cameras(tmp_path):
+    """``bench_image_faults``' ``frames:drop:FRAME:N`` removes exactly cam0 frames
+    FRAME..FRAME+N-1 and their cam1 pairs (a camera gap); an unknown kind is refused."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_image_faults import faulty_copy
+    from vio.io.euroc import load_euroc
+    src = load_euroc(shared("euroc_MH_01_stereo_synimu"))
+    cut = load_euroc(faulty_copy(shared("euroc_MH_01_stereo_synimu"), "frames:drop:100:20", tmp_path / "f"))
+    keep = np.r_[0:100, 120:len(src.cam0.t_ns)]
+    assert np.array_equal(cut.cam0.t_ns, src.cam0.t_ns[keep])
+    assert np.array_equal(cut.cam1.t_ns, src.cam1.t_ns[keep])
+    with pytest.raises(ValueError, match="unknown frame fault"):
+        faulty_copy(shared("euroc_MH_01_stereo_synimu"), "frames:blur:100:20", tmp_path / "g")
+
+
 def _real_mh01_fault(tmp_path: Path, fault: str, mode: str, frames: int):
     """The first ``frames`` frames of real MH_01 with ``fault`` (``bench_image_faults``'s
     ``CAMS:KIND:FRAME:N``) in ``mode``'s defaults: (RunResult, ATE m)."""
