@@ -54,12 +54,13 @@ class CameraGaps:
 
     def frame(self, t_ns: int) -> tuple[int, int] | None:
         """Record a frame at ``t_ns``; the gap it ends (and a warning), or None."""
-        last, self._last = self._last, max(t_ns, self._last if self._last is not None else t_ns)
-        if self._first is None:
-            self._first = t_ns
-        if last is None or t_ns <= last:       # the first frame, or a replayed / repeated stamp
+        last = self._last
+        if last is None:
+            self._first = self._last = t_ns
             return None
-        dt = t_ns - last
+        if t_ns <= last:                       # a repeated or earlier stamp: not an interval
+            return None
+        self._last, dt = t_ns, t_ns - last
         if self.cfg.max_gap_periods > 0 and len(self._dt) >= self.cfg.min_history:
             period = float(np.median(self._dt))
             if dt > self.cfg.max_gap_periods * period:
