@@ -42,6 +42,12 @@ def test_live_backend_reaches_the_deterministic_keyframe_state(monkeypatch):
     t = [o.t_ns for o in live.outputs]
     assert t == sorted(t) and not any(o.keyframe for o in live.outputs)
     assert all(np.isfinite(o.T_w_b.matrix()).all() for o in live.outputs)
+    # the backend's fault counters stayed in its process: the summary says so, not "0 gaps"
+    from vio.run_summary import summary
+    assert live.live and not ref.live
+    faults = [ln for ln in summary(live, data) if ln.startswith("faults")]
+    assert faults == ["faults          in the live backend process (not reported here; its warnings name each)"]
+    assert [ln for ln in summary(ref, data) if ln.startswith("faults")][0].startswith("faults          0 IMU gap(s)")
 
 
 def test_live_is_refused_for_the_photometric_modes():

@@ -62,6 +62,9 @@ class RunResult:
     camera_gaps: int = 0
     camera_gap_s: float = 0.0
     """Stretches without camera frames and their total length (``vio.camera_gaps``)."""
+    live: bool = False
+    """The backend ran in its own process (``PipelineConfig.live``): its fault counters
+    (gaps, restarts, ...) stayed there, the fields above are not its counts."""
     smoothed: dict = field(default_factory=dict)
     landmarks: dict = field(default_factory=dict)
     init: InitInfo | None = None
@@ -234,7 +237,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     else:
         pipe = Pipeline(data.imu_calib, data.cam0.calib, cfg, cam1)
     pipe.sinks.extend(sinks or [])
-    res = RunResult()
+    res = RunResult(live=cfg.live)
     it, stage = early if early is not None else _packet_stream(data, cfg, mode, stamps, pipe)
     bar = None
     if progress:

@@ -22,19 +22,7 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
              + (f", {res.qr_resolves} QR re-solve(s)" if res.qr_resolves else "")
              + (f", {res.point_holds} refused update(s) re-solved holding a world point"
                 if res.point_holds else ""),
-             f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
-             f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
-             + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
-                if res.frames_dropped else "")
-             + (f", {res.camera_gaps} camera gap(s) ({res.camera_gap_s:.2f} s without frames)"
-                if res.camera_gaps else "")
-             + (f", {res.imu_contradicted} IMU interval(s) contradicted by vision, bridged"
-                if res.imu_contradicted else "")
-             + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
-                if res.frames_contradicted else "")
-             + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
-             + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
-             + (f", {res.reiterations} update(s) iterated again" if res.reiterations else "")]
+             _faults_line(res)]
     lines.append(_init_line(res))
     if res.outputs:
         ms = res.frame_ms()
@@ -75,6 +63,28 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
                              f"{s.scale_error_pct:+.1f} % against the ground truth)")
             lines += segment_lines(e)
     return lines
+
+
+def _faults_line(res: RunResult) -> str:
+    """What the run met and did about it (``vio.faults``, ``vio.camera_gaps``, the backend's
+    restarts and bridges); with ``--live`` those counts are the backend process's own."""
+    if res.live:   # the frame check runs on the frame path, in this process
+        return ("faults          in the live backend process (not reported here; its warnings name each)"
+                + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
+                   if res.frames_contradicted else ""))
+    return (f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
+             f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
+             + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
+                if res.frames_dropped else "")
+             + (f", {res.camera_gaps} camera gap(s) ({res.camera_gap_s:.2f} s without frames)"
+                if res.camera_gaps else "")
+             + (f", {res.imu_contradicted} IMU interval(s) contradicted by vision, bridged"
+                if res.imu_contradicted else "")
+             + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
+                if res.frames_contradicted else "")
+             + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
+             + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
+             + (f", {res.reiterations} update(s) iterated again" if res.reiterations else ""))
 
 
 def _init_line(res: RunResult) -> str:
