@@ -69,18 +69,25 @@ def imu_world_accel(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return t, p, acc, R, has_bias
 
 
-def consistency(t: np.ndarray, p: np.ndarray, acc: np.ndarray, R: np.ndarray, T: float,
-                fit_bias: bool, min_speed: float = 0.2) -> tuple[float, int]:
-    """k(T) (see the module docstring) and the number of windows used."""
-    dt = float(np.median(np.diff(t)))
-    n = int(round(T / dt))
-    gt_rows, imu_rows, bias_rows = [], [], []
+def windows(t: np.ndarray, p: np.ndarray, T: float, min_speed: float):
+    """The windows of the module docstring, every ``T / 2``: ``(i0, i2, h, d2p_gt)`` with
+    ``i0:i2`` the 2T of samples, ``h`` (i2 - i0,) the triangle kernel times each sample's
+    time step and ``d2p_gt`` (3,) the ground truth's second difference; windows where the
+    body is slower than ``min_speed`` (m/s) are skipped."""
+    n = int(round(T / float(np.median(np.diff(t)))))
     for i0 in range(0, len(t) - 2 * n, max(1, n // 2)):
         i1, i2 = i0 + n, i0 + 2 * n
         if np.linalg.norm(p[i2] - p[i0]) / (t[i2] - t[i0]) < min_speed:
             continue
-        h = (T - np.abs(t[i0:i2] - t[i1])) * np.gradient(t[i0:i2])
-        gt_rows.append(p[i2] - 2 * p[i1] + p[i0])
+        yield i0, i2, (T - np.abs(t[i0:i2] - t[i1])) * np.gradient(t[i0:i2]), p[i2] - 2 * p[i1] + p[i0]
+
+
+def consistency(t: np.ndarray, p: np.ndarray, acc: np.ndarray, R: np.ndarray, T: float,
+                fit_bias: bool, min_speed: float = 0.2) -> tuple[float, int]:
+    """k(T) (see the module docstring) and the number of windows used."""
+    gt_rows, imu_rows, bias_rows = [], [], []
+    for i0, i2, h, d2p in windows(t, p, T, min_speed):
+        gt_rows.append(d2p)
         imu_rows.append(h @ acc[i0:i2])
         bias_rows.append(-np.einsum("n,nij->ij", h, R[i0:i2]))  # d(d2p_imu)/d(b_a)
     if not gt_rows:
@@ -98,19 +105,13 @@ def per_axis(t: np.ndarray, p: np.ndarray, acc: np.ndarray, R: np.ndarray, T: fl
     """Per body axis k the ratio s_k (3,) of the module docstring's per-axis fit (a
     constant accelerometer bias fitted with them) and the number of windows used;
     ``acc`` are world accelerations as :func:`imu_world_accel` returns them."""
-    dt = float(np.median(np.diff(t)))
-    n = int(round(T / dt))
     a_b = np.einsum("nji,nj->ni", R, acc - GRAVITY_W)     # body-frame specific force, bias removed
     ys, xs = [], []
-    for i0 in range(0, len(t) - 2 * n, max(1, n // 2)):
-        i1, i2 = i0 + n, i0 + 2 * n
-        if np.linalg.norm(p[i2] - p[i0]) / (t[i2] - t[i0]) < min_speed:
-            continue
-        h = (T - np.abs(t[i0:i2] - t[i1])) * np.gradient(t[i0:i2])
-        ys.append(p[i2] - 2 * p[i1] + p[i0] - h.sum() * GRAVITY_W)
+    for i0, i2, h, d2p in windows(t, p, T, min_speed):
+        ys.append(d2p - h.sum() * GRAVITY_W)
         hR = h[:, None, None] * R[i0:i2]
-        xs.append(np.column_stack([np.einsum("nik,nk->i", hR, a_b[i0:i2] * (np.arange(3) == k))
-                                   for k in range(3)] + [-hR.sum(0)]))
+        # column k: axis k's reading through the attitude; then d/d(b_a)
+        xs.append(np.column_stack([np.einsum("nik,nk->ik", hR, a_b[i0:i2]), -hR.sum(0)]))
     if not ys:
         return np.full(3, np.nan), 0
     sol, *_ = np.linalg.lstsq(np.concatenate(xs), np.concatenate(ys), rcond=None)
