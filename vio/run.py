@@ -270,7 +270,7 @@ def run_dataset(data: EurocDataset, cfg: PipelineConfig | None = None, max_frame
     if cfg.live:
         pipe.close()     # the backend's last state (after the frame path's wall time)
     res.data_s = (stamps[-1] - stamps[0]) * 1e-9 if len(stamps) > 1 else 0.0
-    _counters(res, pipe, cfg.live)
+    _counters(res, pipe)
     return res
 
 
@@ -304,13 +304,13 @@ def _log_above(bar):
             h.setStream(stream)
 
 
-def _counters(res: RunResult, pipe, live: bool) -> None:
+def _counters(res: RunResult, pipe) -> None:
     """The run's counters from the pipeline into ``res`` (keyframes, solver recoveries and
-    the frames placed by PnP only when ``live``: the live backend's other counters stay in
-    its process)."""
+    the frames placed by PnP only when ``res.live``: the live backend's other counters stay
+    in its process)."""
     res.keyframes = pipe.n_keyframes
-    res.recoveries = pipe.recoveries if live else pipe.est.recoveries
-    if live:
+    res.recoveries = pipe.recoveries if res.live else pipe.est.recoveries
+    if res.live:
         res.frames_contradicted = pipe.frame_contradictions
         return
     res.init = pipe.init_info

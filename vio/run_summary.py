@@ -68,10 +68,10 @@ def summary(res: RunResult, data: EurocDataset, segments_s: float | None = None)
 def _faults_line(res: RunResult) -> str:
     """What the run met and did about it (``vio.faults``, ``vio.camera_gaps``, the backend's
     restarts and bridges); with ``--live`` those counts are the backend process's own."""
+    pnp = (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
+           if res.frames_contradicted else "")
     if res.live:   # the frame check runs on the frame path, in this process
-        return ("faults          in the live backend process (not reported here; its warnings name each)"
-                + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
-                   if res.frames_contradicted else ""))
+        return "faults          in the live backend process (not reported here; its warnings name each)" + pnp
     return (f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
              + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
@@ -80,8 +80,7 @@ def _faults_line(res: RunResult) -> str:
                 if res.camera_gaps else "")
              + (f", {res.imu_contradicted} IMU interval(s) contradicted by vision, bridged"
                 if res.imu_contradicted else "")
-             + (f", {res.frames_contradicted} frame(s) placed by PnP against their IMU prediction"
-                if res.frames_contradicted else "")
+             + pnp
              + (f", {res.reinits} re-initialization(s)" if res.reinits else "")
              + (f", {res.realigns} gravity re-alignment(s)" if res.realigns else "")
              + (f", {res.reiterations} update(s) iterated again" if res.reiterations else ""))
