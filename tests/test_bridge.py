@@ -246,3 +246,19 @@ def test_the_live_frame_path_checks_its_prediction_on_the_reported_landmarks():
     assert checked(pipe, good, pkt) is good and pipe.frame_contradictions == 1
     pipe.state = KeyState(0, T_w_b.matrix(), np.zeros(3), np.zeros(6), 0.0, est.extrinsic().matrix(), 0, 3, 0)
     assert checked(pipe, pred, pkt) is pred
+
+
+def test_a_long_interval_widens_what_contradicts_the_imu():
+    """Over a keyframe interval (up to ``imu_check_ref_s``) an alignment 3 cm from the IMU
+    prediction contradicts it; over a 1.2-s camera gap the prediction's own error is that
+    large (real MH_01: 27 mm from a right prediction), so the limit grows with the square
+    of the interval; a 6 m/s^2 accelerometer offset over it (4.3 m) still contradicts."""
+    from vio.backend.bridge import contradicts, long_interval
+    from vio.backend.health import BridgeConfig
+    bc = BridgeConfig()
+    assert long_interval(bc, 0.0) == long_interval(bc, bc.imu_check_ref_s) == 1.0
+    assert np.isclose(long_interval(bc, 2 * bc.imu_check_ref_s), 4.0)
+    assert contradicts(bc, 0.031, 0.001, 0.2) and not contradicts(bc, 0.029, 0.001, 0.2)
+    assert not contradicts(bc, 0.031, 0.001, 1.2) and not contradicts(bc, 0.15, 0.001, 1.2)
+    assert contradicts(bc, 0.5 * 6.0 * 1.2 ** 2, 0.001, 1.2)
+    assert not contradicts(bc, 0.5, np.radians(1.5), 1.2)      # an attitude error is a timing error

@@ -196,7 +196,8 @@ def within_hold(est, t_ns: int) -> bool:
 def contradicts(bc, dist_m: float, ang_rad: float, dt_s: float = 0.0, held: bool = False) -> bool:
     """Whether an alignment ``dist_m`` / ``ang_rad`` from the IMU prediction over ``dt_s``
     contradicts the IMU (``BridgeConfig`` ``bc``; the landmark check's PnP pose, direct
-    mode's TrackFrame): at least ``imu_check_min_m`` and at most ``imu_check_max_deg``;
+    mode's TrackFrame): at least ``imu_check_min_m`` (times ``(dt_s / imu_check_ref_s)^2``
+    over an interval longer than ``imu_check_ref_s``) and at most ``imu_check_max_deg``;
     ``held`` (within ``imu_check_hold_s`` of a contradicted interval) a residual
     acceleration ``2 d / dt^2`` of at least ``imu_check_hold_accel``: the held intervals
     are short and the IMU's own error over one is a few mm."""
@@ -204,7 +205,16 @@ def contradicts(bc, dist_m: float, ang_rad: float, dt_s: float = 0.0, held: bool
         return False
     if held:
         return 2.0 * dist_m / max(dt_s, 1e-3) ** 2 >= bc.imu_check_hold_accel
-    return dist_m >= bc.imu_check_min_m and float(np.degrees(ang_rad)) <= bc.imu_check_max_deg
+    return (dist_m >= bc.imu_check_min_m * long_interval(bc, dt_s)
+            and float(np.degrees(ang_rad)) <= bc.imu_check_max_deg)
+
+
+def long_interval(bc, dt_s: float) -> float:
+    """How much farther from the IMU prediction over ``dt_s`` seconds a visual alignment may
+    land before it is out of the ordinary (``BridgeConfig`` ``bc``): 1 up to
+    ``imu_check_ref_s``, then ``(dt_s / imu_check_ref_s)^2``, as the prediction's own error
+    grows (a camera gap: 1.2 s on real MH_01 left a right prediction 3 cm off)."""
+    return max(1.0, dt_s / bc.imu_check_ref_s) ** 2
 
 
 def imu_held(est, t_ns: int) -> bool:

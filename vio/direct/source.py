@@ -85,6 +85,7 @@ class PhotometricSource(TrackFrameStep):
 
     def __init__(self, est, rig: StereoRig, cfg: DirectConfig) -> None:
         self.est, self.rig, self.cfg = est, rig, cfg
+        self.features = None          # the newest keyframe's FeatureFrame (``observe``)
         pc = cfg.points
         self.key_thresholds = {"a": tuple(pc.affine_relinearize)}
         self.params = HostParams(PhotometricParams(pc.sigma_I, pc.grad_c, pc.huber_k),
@@ -117,6 +118,7 @@ class PhotometricSource(TrackFrameStep):
                 if isinstance(imgs[0], np.ndarray) else read_image(imgs[0], self.rig.cam0))
         # the right image (or its file) goes to the keyframe worker with the points
         self.kfs[k] = build_keyframe(k, frame.t_ns, left, imgs[1], self.rig, self.cfg, background=True)
+        self.features = getattr(frame, "features", None)   # TrackFrame's second guess (hybrid)
 
     def prepare_update(self, k: int, pred: gtsam.NavState, leaving: list[int],
                        g: gtsam.NonlinearFactorGraph, v: gtsam.Values, stamps: dict) -> list[int]:
