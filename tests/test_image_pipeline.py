@@ -120,6 +120,44 @@ def test_worker_process_drops_unreadable_images_and_reports_bad_ones(sim_stereo,
     assert len(kept & set(got[4].features.ids.tolist())) > 0.5 * len(kept)
 
 
+def test_blank_images_drop_their_frames_and_tracking_goes_on(sim_stereo, tmp_path, caplog):
+    """A cam0 image that shows nothing (black, saturated, a covered lens: every pixel
+    alike, ``vio.tracking.blank_image``) marks its frame ``dropped`` with the file named,
+    as an undecodable one; the frame after is tracked from the last good one (gyro
+    prediction), keeping most tracks. A dark but textured image is kept; in the pipeline
+    a run of dropped frames gives one warning at its start and one with its length."""
+    import cv2
+    from vio.io.euroc import image_files, read_image
+    from vio.sync import packets
+    from vio.tracking import ImageStage, blank_image
+    d = sim_stereo
+    img = read_image(image_files(d, True, d.cam0.t_ns[:1])[0][0])
+    assert not blank_image(img, 4.0) and not blank_image((img // 12).astype(np.uint8), 4.0)
+    assert blank_image(np.zeros_like(img), 4.0) and blank_image(np.full_like(img, 255), 4.0)
+    assert not blank_image(np.zeros_like(img), 0.0)
+    stamps = d.cam0.t_ns[:8]
+    files = image_files(d, True, stamps)
+    for i, value in ((3, 0), (4, 12), (5, 255)):
+        path = tmp_path / f"blank{i}.png"
+        cv2.imwrite(str(path), np.full(img.shape, value, np.uint8))
+        files[i] = (path, files[i][1])
+    stage = ImageStage(d.cam0.calib, d.cam1.calib, None)
+    got = [stage(p) for p in packets(d.imu, stamps, 0.0, image_files=files)]
+    assert [bool(p.dropped) for p in got] == [False] * 3 + [True] * 3 + [False] * 2
+    assert "blank3.png: the image shows nothing" in got[3].dropped and got[3].features is None
+    kept = set(got[2].features.ids.tolist())      # frame 6 tracked on from frame 2
+    assert len(kept & set(got[6].features.ids.tolist())) > 0.5 * len(kept)
+    from vio.pipeline import Pipeline
+    from vio.run import default_config
+    pipe = Pipeline(d.imu_calib, d.cam0.calib, default_config("stereo"), d.cam1.calib)
+    with caplog.at_level("WARNING", logger="vio.pipeline"):
+        for p in got:
+            pipe.process(p)
+    assert pipe.frames_dropped == 3
+    msgs = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
+    assert len(msgs) == 2 and "blank3.png" in msgs[0] and "3 frames in a row dropped" in msgs[1], msgs
+
+
 def _policy_flags(frames, cfg, fx):
     """``KeyframeConfig``'s decisions over (t_ns, FeatureFrame) pairs, as the pipeline
     makes them (every decision made on its own features)."""

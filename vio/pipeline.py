@@ -108,6 +108,7 @@ class Pipeline:
         self.frames_dropped = 0                          # images missing or unreadable
         self.camera_gaps = CameraGaps(cfg.camera_gaps)   # stretches without frames
         self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
+        self._dropped_run, self._dropped_since = 0, 0   # dropped frames in a row, the first's time (ns)
         # the packet stream's sync layer follows the estimator's td (vio.run.td_feedback)
         self.td_fed_back = False
 
@@ -153,13 +154,19 @@ class Pipeline:
         t0 = time.perf_counter()
         self.camera_gaps.frame(pkt.t_ns)
         if pkt.dropped:       # no vision for this frame: its IMU goes with the next one
-            log.warning("t=%d ns: frame dropped (%s); its IMU carries over to the next frame", pkt.t_ns,
-                        pkt.dropped)
+            # the first of a run of dropped frames is warned about, the run's length at its end
+            (log.warning if self._held is None else log.debug)(
+                "t=%d ns: frame dropped (%s); its IMU carries over to the next frame", pkt.t_ns, pkt.dropped)
             self.frames_dropped += 1
+            self._dropped_since = pkt.t_ns if self._held is None else self._dropped_since
             self._held = pkt if self._held is None else carry_imu(self._held, pkt)
+            self._dropped_run += 1
             return []
         if self._held is not None:
-            pkt, self._held = carry_imu(self._held, pkt), None
+            if self._dropped_run > 1:
+                log.warning("t=%d ns: %d frames in a row dropped since t=%d ns (%.2f s without vision)",
+                            pkt.t_ns, self._dropped_run, self._dropped_since, (pkt.t_ns - self._dropped_since) * 1e-9)
+            pkt, self._held, self._dropped_run = carry_imu(self._held, pkt), None, 0
         if self.init.stitch is not None:   # the first packet after a window replayed at its td
             st = stitch(pkt, *self.init.stitch)
             if st is None:

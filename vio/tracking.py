@@ -31,6 +31,13 @@ if TYPE_CHECKING:
     from vio.backend.config import KeyframeConfig
 
 
+def blank_image(img: np.ndarray, min_std: float) -> bool:
+    """Whether ``img`` (gray, uint8) shows nothing: the standard deviation of every 4th
+    pixel of every 4th row under ``min_std`` gray levels (black, saturated, a covered
+    lens; real EuRoC frames 53-83). ``min_std`` 0: never."""
+    return min_std > 0 and float(img[::4, ::4].std()) < min_std
+
+
 def gyro_rotation(imu: ImuData) -> np.ndarray:
     """Body rotation ``R_b(t0)_b(t1)`` (3, 3) over a packet's IMU segment (raw gyro,
     midpoint rule); bias-free, which is ample for an LK initial guess."""
@@ -66,23 +73,31 @@ class ImageStage:
     def load(self, pkt: FramePacket) -> FramePacket:
         """``pkt`` with its images decoded (``vio.overlap``'s worker runs this a packet
         ahead, in a thread, while the previous packet is tracked); an image that does not
-        decode marks the frame ``dropped`` (``Pipeline.process`` carries its IMU over).
+        decode, or a cam0 image that shows nothing (:func:`blank_image`), marks the frame
+        ``dropped`` (``Pipeline.process`` carries its IMU over).
         With a keyframe policy cam1 is only checked to exist here: ``_finish`` decodes it
         where it is matched (a cam1 file that exists but does not decode drops the frame
         there)."""
-        if pkt.images or not pkt.image_files or pkt.dropped:
+        if pkt.dropped or not (pkt.images or pkt.image_files):
             return pkt
-        files = pkt.image_files[:2 if self.stereo else 1]
-        lazy = self._policy is not None and len(files) > 1
-        try:
-            images = tuple(read_image(p) for p in (files[:1] if lazy else files))
-            if lazy and not image_exists(files[1]):
-                raise DataError(files[1], "image missing or unreadable")
-        except DataError as exc:
-            return dataclasses.replace(pkt, dropped=str(exc))
-        for path, img, calib in zip(files, images, self._calibs):
-            calib.check_resolution(img, path)
-        return dataclasses.replace(pkt, images=images)
+        if not pkt.images:
+            files = pkt.image_files[:2 if self.stereo else 1]
+            lazy = self._policy is not None and len(files) > 1
+            try:
+                images = tuple(read_image(p) for p in (files[:1] if lazy else files))
+                if lazy and not image_exists(files[1]):
+                    raise DataError(files[1], "image missing or unreadable")
+            except DataError as exc:
+                return dataclasses.replace(pkt, dropped=str(exc))
+            for path, img, calib in zip(files, images, self._calibs):
+                calib.check_resolution(img, path)
+            pkt = dataclasses.replace(pkt, images=images)
+        min_std = self.frontend.cfg.min_image_std
+        if blank_image(pkt.images[0], min_std):
+            where = pkt.image_files[0] if pkt.image_files else f"cam0 image at t={pkt.t_ns} ns"
+            return dataclasses.replace(pkt, images=(), dropped=f"{where}: the image shows nothing "
+                                                              f"(intensity spread under {min_std:g} gray levels)")
+        return pkt
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
         return self._finish(*self._track(pkt))

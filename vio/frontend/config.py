@@ -118,6 +118,11 @@ class FrontendConfig:
     # 236 s for 16 s of data. Idle at 0 (2.6-GHz Xeon VM, stop 70, 3 alternated runs): MH_01 stereo
     # wall 5.30 -> 5.06 s, p95 20.1 -> 22.7 ms, max 26 -> 30 ms; MH_05 mono p95 38 ms both
     worker_nice: int = 0
+    # a cam0 image whose intensities' standard deviation (gray levels, every 4th pixel of
+    # every 4th row) is below this shows nothing (black, saturated, the lens covered): its
+    # frame is dropped as an undecodable one is (``vio.tracking.blank_image``; real EuRoC
+    # frames 53-83); 0: never
+    min_image_std: float = 4.0
 
     def __post_init__(self) -> None:
         positive = ("max_features", "detect_min_missing", "min_dist_px", "lk_window", "lk_max_iter",
