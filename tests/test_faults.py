@@ -392,7 +392,7 @@ def test_a_dropped_packet_carries_its_imu_to_the_next_frame(tmp_path, caplog):
     from vio.run import RunResult
     from vio.run_summary import summary
     faults = [ln for ln in summary(RunResult(frames_dropped=1), data) if ln.startswith("faults")]
-    assert faults and faults[0].endswith("1 frame(s) dropped (image missing or unreadable)"), faults
+    assert faults and faults[0].endswith("1 frame(s) dropped (image missing, unreadable or blank)"), faults
     assert pkts[drop].t_ns not in {o.t_ns for o in outs} and pkts[drop + 1].t_ns in {o.t_ns for o in outs}
     t_drop = (pkts[drop].t_ns - data.imu.t_ns[0]) * 1e-9
     assert drop_frames(root, t_drop - 0.01, 0.02) == 1     # the same data without that frame

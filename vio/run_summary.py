@@ -74,7 +74,7 @@ def _faults_line(res: RunResult) -> str:
         return "faults          in the live backend process (not reported here; its warnings name each)" + pnp
     return (f"faults          {res.imu_gaps} IMU gap(s) bridged ({res.imu_gap_s:.2f} s), "
              f"{res.imu_dropped} IMU sample(s) dropped, {res.restarts} divergence restart(s)"
-             + (f", {res.frames_dropped} frame(s) dropped (image missing or unreadable)"
+             + (f", {res.frames_dropped} frame(s) dropped (image missing, unreadable or blank)"
                 if res.frames_dropped else "")
              + (f", {res.camera_gaps} camera gap(s) ({res.camera_gap_s:.2f} s without frames)"
                 if res.camera_gaps else "")
