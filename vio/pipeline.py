@@ -105,7 +105,7 @@ class Pipeline:
         self.n_keyframes = 0
         self.imu_gaps: set[tuple[int, int]] = set()   # (last sample before, first after), ns
         self.imu_dropped = 0
-        self.frames_dropped = 0                          # images missing or unreadable
+        self.frames_dropped = 0                          # images missing, unreadable or blank
         self.camera_gaps = CameraGaps(cfg.camera_gaps)   # stretches without frames
         self._held: FramePacket | None = None           # a dropped frame (FramePacket.dropped)
         self._dropped_run, self._dropped_since = 0, 0   # dropped frames in a row, the first's time (ns)
