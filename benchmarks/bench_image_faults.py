@@ -19,7 +19,9 @@ restarts, re-initializations, keyframe intervals whose IMU vision contradicted
 row is the unaltered folder. The default faults are stop 55/56's table
 (benchmarks/README.md): 1 s black / blurred / over-exposed in both cameras and 2 s of a
 covered camera from frame 150, the right camera covered for 2 s from frames 40, 100, 200,
-260, for 6 s from frame 60, and from frame 20 to the end. Asserts nothing.
+260, for 6 s from frame 60, and from frame 20 to the end; and (stops 77-78) 1-s camera gaps
+from frames 150 and 240 (the rig moves 0.4 m and turns 15 degrees in the second). Asserts
+nothing.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from vio.run import load_config, run_dataset  # noqa: E402
 DATA = ROOT.parent / "shared" / "data" / "euroc_MH_01_stereo_synimu"
 FAULTS = ("both:black:150:20,both:blur:150:20,both:exposure:150:20,cam1:cover:150:40,cam0:cover:150:40,"
           "cam1:cover:40:40,cam1:cover:100:40,cam1:cover:200:40,cam1:cover:260:40,cam1:cover:60:120,"
-          "cam1:cover:20:300")
+          "cam1:cover:20:300,frames:drop:150:20,frames:drop:240:20")
 
 
 def faulty_copy(src: Path, fault: str, out: Path) -> Path:
