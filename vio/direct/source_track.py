@@ -110,6 +110,15 @@ class TrackFrameStep:
             log.warning("TrackFrame failed at keyframe %d: rmse %.1f (IMU prediction kept)", k, res.rmse)
         return np.array([res.a, res.b]) if res.ok else ab_p
 
+    def _attempt(self, ref, kd: KeyframeData, guess: gtsam.Pose3, ab_p: np.ndarray, prior,
+                 shutter: Shutter | None):
+        """TrackFrame of ``kd`` from one more start ``guess`` (``T_kf_new``); None where it
+        fails numerically (a second guess that cannot be computed is no guess)."""
+        try:
+            return track_frame(ref, kd.pyramid(self.cfg.track.levels), guess, ab_p, self.cfg.track, prior, shutter)
+        except (ArithmeticError, np.linalg.LinAlgError):
+            return None
+
     def _from_features(self, k: int, kd: KeyframeData, T_w_cp: gtsam.Pose3, T_init: gtsam.Pose3,
                        ab_p: np.ndarray, ref, prior, shutter: Shutter | None, res):
         """TrackFrame of keyframe k from the RANSAC PnP pose of its feature observations of
@@ -128,12 +137,8 @@ class TrackFrameStep:
                       bc.pnp_min_inliers)
         if T is None:
             return res
-        guess = T_w_cp.between(T.compose(T_b_c))
-        try:
-            alt = track_frame(ref, kd.pyramid(self.cfg.track.levels), guess, ab_p, self.cfg.track, prior, shutter)
-        except (ArithmeticError, np.linalg.LinAlgError):
-            return res
-        if res is not None and not alt.rmse < res.rmse:
+        alt = self._attempt(ref, kd, T_w_cp.between(T.compose(T_b_c)), ab_p, prior, shutter)
+        if alt is None or (res is not None and not alt.rmse < res.rmse):
             return res
         dist, ang = pose_offset(T_pred, T)
         log.info("keyframe %d: TrackFrame from the features' PnP pose (%.3f m / %.2f deg from the IMU "
@@ -151,15 +156,12 @@ class TrackFrameStep:
         clearly better: after a 1-s gap from real MH_01 frame 280 one reached RMSE 32.4
         against the prediction's 40.5 at 60 mm from the truth (the ground truth's pose: 36.5),
         and hybrid's ATE went 9.6 -> 13.1 mm."""
-        best, pyr, d = res, kd.pyramid(self.cfg.track.levels), self.cfg.points.track_gate_m
+        best, d = res, self.cfg.points.track_gate_m
         limit = np.inf if res is None else AROUND_MARGIN * res.rmse
         for step in np.vstack([np.eye(3), -np.eye(3)]) * d:
-            guess = gtsam.Pose3(T_init.rotation(), T_init.translation() + step)
-            try:
-                alt = track_frame(ref, pyr, guess, ab_p, self.cfg.track, prior, shutter)
-            except (ArithmeticError, np.linalg.LinAlgError):
-                continue
-            if alt.rmse < limit and (best is res or alt.rmse < best.rmse):
+            alt = self._attempt(ref, kd, gtsam.Pose3(T_init.rotation(), T_init.translation() + step), ab_p,
+                                prior, shutter)
+            if alt is not None and alt.rmse < limit and (best is res or alt.rmse < best.rmse):
                 best = alt
         if best is not res:
             log.info("keyframe %d: TrackFrame from a start %.0f mm off the IMU prediction: rmse %.1f against %s",
