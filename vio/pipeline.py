@@ -155,10 +155,11 @@ class Pipeline:
         self.camera_gaps.frame(pkt.t_ns)
         if pkt.dropped:       # no vision for this frame: its IMU goes with the next one
             # the first of a run of dropped frames is warned about, the run's length at its end
-            (log.warning if self._held is None else log.debug)(
+            first = self._dropped_run == 0
+            (log.warning if first else log.debug)(
                 "t=%d ns: frame dropped (%s); its IMU carries over to the next frame", pkt.t_ns, pkt.dropped)
             self.frames_dropped += 1
-            self._dropped_since = pkt.t_ns if self._held is None else self._dropped_since
+            self._dropped_since = pkt.t_ns if first else self._dropped_since
             self._held = pkt if self._held is None else carry_imu(self._held, pkt)
             self._dropped_run += 1
             return []
