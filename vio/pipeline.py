@@ -195,7 +195,7 @@ class Pipeline:
         still = self.still_now()
         # the IMU resumed in this packet: a keyframe here ends the bridge, the next interval
         # gets an IMU factor again
-        if pkt.imu_resumed or self._is_keyframe(pkt):
+        if self.takes_keyframe(pkt):
             self.est.add_keyframe(pkt.t_ns, self._features(pkt), still, pkt.imu.gyro[-1], pkt)
             self._keyframe_taken(pkt)
             self.n_keyframes += 1
@@ -250,9 +250,12 @@ class Pipeline:
             self.muted = False
         self.n_keyframes = n
 
-    def _is_keyframe(self, pkt: FramePacket) -> bool:
-        """The image stage's decision where it made one (``FramePacket.keyframe``: it
-        matched cam1 there), else ``KeyframeConfig``'s policy."""
+    def takes_keyframe(self, pkt: FramePacket) -> bool:
+        """Whether ``step`` makes this packet a keyframe (state unchanged): where the IMU
+        resumes, else the image stage's decision where it made one
+        (``FramePacket.keyframe``: it matched cam1 there), else ``KeyframeConfig``'s policy."""
+        if pkt.imu_resumed:
+            return True
         if pkt.keyframe is not None:
             return pkt.keyframe
         return self.keyframes.due(pkt.t_ns, *_tracks(pkt.features))

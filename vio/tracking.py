@@ -38,6 +38,16 @@ def blank_image(img: np.ndarray, min_std: float) -> bool:
     return min_std > 0 and float(img[::4, ::4].std()) < min_std
 
 
+def drop_blank(pkt: FramePacket, min_std: float) -> FramePacket:
+    """``pkt`` (its cam0 image decoded, ``images[0]``) marked ``dropped``, its images let
+    go, when that image shows nothing (:func:`blank_image`); else ``pkt``."""
+    if not blank_image(pkt.images[0], min_std):
+        return pkt
+    where = pkt.image_files[0] if pkt.image_files else f"cam0 image at t={pkt.t_ns} ns"
+    return dataclasses.replace(pkt, images=(), dropped=f"{where}: the image shows nothing "
+                                                      f"(intensity spread under {min_std:g} gray levels)")
+
+
 def gyro_rotation(imu: ImuData) -> np.ndarray:
     """Body rotation ``R_b(t0)_b(t1)`` (3, 3) over a packet's IMU segment (raw gyro,
     midpoint rule); bias-free, which is ample for an LK initial guess."""
@@ -92,12 +102,7 @@ class ImageStage:
             for path, img, calib in zip(files, images, self._calibs):
                 calib.check_resolution(img, path)
             pkt = dataclasses.replace(pkt, images=images)
-        min_std = self.frontend.cfg.min_image_std
-        if blank_image(pkt.images[0], min_std):
-            where = pkt.image_files[0] if pkt.image_files else f"cam0 image at t={pkt.t_ns} ns"
-            return dataclasses.replace(pkt, images=(), dropped=f"{where}: the image shows nothing "
-                                                              f"(intensity spread under {min_std:g} gray levels)")
-        return pkt
+        return drop_blank(pkt, self.frontend.cfg.min_image_std)
 
     def __call__(self, pkt: FramePacket) -> FramePacket:
         return self._finish(*self._track(pkt))

@@ -111,7 +111,10 @@ class PhotometricSource(TrackFrameStep):
         """Build keyframe k's data from ``frame.images`` (left, right), read from
         ``frame.image_files`` when the packet carries none (the right one in the
         keyframe worker, ``vio.direct.keyframe.build_keyframe``)."""
-        imgs = getattr(frame, "images", ()) or tuple(getattr(frame, "image_files", ())[:2])
+        files = tuple(getattr(frame, "image_files", ())[:2])
+        imgs = getattr(frame, "images", ()) or files
+        if len(imgs) == 1 and len(files) == 2:    # cam0 decoded by the stage (vio.direct.mode)
+            imgs = (imgs[0], files[1])
         if len(imgs) < 2:
             raise ValueError(f"direct mode: keyframe {k} packet has no stereo images")
         left = (self.rig.cam0.check_resolution(imgs[0], f"cam0 image at t={frame.t_ns} ns")
